@@ -1,0 +1,40 @@
+"""ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
+
+Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``); ``run_filter`` composes them into a
+whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference.
+"""
+
+from ot_filter import metrics, models
+from ot_filter.filtering import FilterResult, run_filter
+from ot_filter.kalman import KalmanResult, kalman_filter
+from ot_filter.model import StateSpaceModel, simulate
+from ot_filter.updates import (
+    BayesUpdate,
+    EnKFInfo,
+    SIRInfo,
+    SIRState,
+    enkf,
+    resample_indices,
+    sir,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BayesUpdate",
+    "EnKFInfo",
+    "FilterResult",
+    "KalmanResult",
+    "SIRInfo",
+    "SIRState",
+    "StateSpaceModel",
+    "enkf",
+    "kalman_filter",
+    "metrics",
+    "models",
+    "resample_indices",
+    "run_filter",
+    "simulate",
+    "sir",
+]

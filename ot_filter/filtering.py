@@ -1,0 +1,194 @@
+"""Whole-trajectory particle filters: one ``lax.scan`` of propagate-then-update.
+
+    X^i_0 ~ pi_0;   for t = 1..T:   X^i_t <- a(. | X^i_{t-1})  (propagation, model simulator)
+                                    X_t   <- update.apply(key, state, X_t, y_t, model)  (Bayes)
+
+(the chapter's eq. exact-posterior with both operators replaced by particle approximations).
+
+The result holds the filtering mean and spread after each observation (weighted for SIR), the
+stacked per-step ``info`` of the update, and the particles at every k-th step or none, so that
+memory stays bounded for long runs with many particles. The whole filter is one jit-compiled
+program; it can itself be jitted and vmapped over keys and observation sequences.
+
+Missing observations: a time step whose observation contains NaN is skipped (the update is the
+identity, ``observed[t]`` is False and that step's ``info`` is zeros); propagation goes on.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ot_filter.model import StateSpaceModel, model_dimensions
+from ot_filter.updates.base import BayesUpdate
+
+Array = jax.Array
+
+__all__ = ["FilterResult", "run_filter"]
+
+
+class FilterResult(NamedTuple):
+    """Output of ``run_filter`` (T observation times, N particles, n state dimensions).
+
+    Attributes:
+      mean: ``[T, n]`` filtering mean after each update (weighted by the particle weights).
+      spread: ``[T]`` ensemble spread, sqrt of the mean over components of the weighted variance.
+      info: the update's per-step diagnostics, each leaf with a leading axis T.
+      observed: ``[T]`` bool, False where the observation had NaN and the update was skipped.
+      particles: ``[S, N, n]`` particles after the updates at ``saved_steps`` (None if S = 0).
+      log_weights: ``[S, N]`` their normalised log-weights (None if S = 0).
+      saved_steps: ``[S]`` int, the time indices (0-based) at which particles were saved.
+      final_particles: ``[N, n]`` particles after the last step (to continue filtering).
+      final_state: the update's state after the last step.
+    """
+
+    mean: Array
+    spread: Array
+    info: Any
+    observed: Array
+    particles: Array | None
+    log_weights: Array | None
+    saved_steps: np.ndarray
+    final_particles: Array
+    final_state: Any
+
+
+def run_filter(
+    key: Array,
+    model: StateSpaceModel,
+    update: BayesUpdate,
+    observations: Array,
+    num_particles: int,
+    save_every: int = 1,
+    initial_particles: Array | None = None,
+) -> FilterResult:
+    """Filters a sequence of observations with a particle Bayes update.
+
+    Args:
+      key: PRNG key.
+      model: the state-space model (its simulator propagates the particles).
+      update: a ``BayesUpdate`` (``ot_filter.sir(...)``, ``ot_filter.enkf(...)``, ...).
+      observations: ``[T, m]`` observations y_1..y_T (rows with NaN are treated as missing).
+      num_particles: N >= 2 (static).
+      save_every: keep the particles of every k-th step (steps k-1, 2k-1, ...); 1 keeps all,
+        0 keeps none (static).
+      initial_particles: optional ``[N, n]`` initial ensemble instead of N draws from pi_0
+        (e.g. a filter started from a different prior than the truth).
+
+    Returns:
+      A ``FilterResult``.
+    """
+    if not isinstance(update, BayesUpdate):
+        raise TypeError(
+            f"update must be a BayesUpdate (e.g. ot_filter.sir()), got {type(update).__name__}"
+        )
+    if isinstance(num_particles, bool) or not isinstance(num_particles, (int, np.integer)):
+        raise TypeError(f"num_particles must be an int, got {type(num_particles).__name__}")
+    if num_particles < 2:
+        raise ValueError(f"num_particles must be >= 2, got {num_particles}")
+    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 0:
+        raise ValueError(f"save_every must be an int >= 0, got {save_every!r}")
+    state_dim, observation_dim = model_dimensions(model)
+    if jnp.ndim(observations) != 2 or jnp.shape(observations)[1] != observation_dim:
+        raise ValueError(
+            f"observations must have shape [T, {observation_dim}] for this model, "
+            f"got {jnp.shape(observations)}"
+        )
+    if jnp.shape(observations)[0] < 1:
+        raise ValueError("observations must hold at least one time step (T >= 1)")
+    if initial_particles is not None:
+        expected = (int(num_particles), state_dim)
+        if jnp.shape(initial_particles) != expected:
+            raise ValueError(
+                f"initial_particles must have shape {expected}, got {jnp.shape(initial_particles)}"
+            )
+    return _run_filter(
+        key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
+        initial_particles,
+    )
+
+
+@partial(jax.jit, static_argnames=("update", "num_particles", "save_every"))
+def _run_filter(key, model, update, observations, num_particles, save_every, initial_particles):
+    init_key, state_key, steps_key = jax.random.split(key, 3)
+    if initial_particles is None:
+        particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
+    else:
+        particles = jnp.asarray(initial_particles)
+    observations = observations.astype(particles.dtype)
+    state = update.init(state_key, particles)
+
+    def step(carry, inputs):
+        particles, state = carry
+        step_key, observation = inputs
+        propagate_key, update_key = jax.random.split(step_key)
+        particles = jax.vmap(model.sample_transition)(
+            jax.random.split(propagate_key, num_particles), particles
+        )
+        observed = jnp.all(jnp.isfinite(observation))
+        safe_observation = jnp.where(observed, observation, jnp.zeros_like(observation))
+
+        def skip(update_key, state, particles, observation):
+            info_shape = jax.eval_shape(update.apply, update_key, state, particles, observation, model)[2]
+            info = jax.tree.map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), info_shape)
+            return particles, state, info
+
+        particles, state, info = jax.lax.cond(
+            observed,
+            lambda *args: update.apply(*args, model),
+            skip,
+            update_key, state, particles, safe_observation,
+        )
+        weights = jnp.exp(state.log_weights)
+        mean = weights @ particles
+        spread = jnp.sqrt(jnp.mean(weights @ (particles - mean) ** 2))
+        return (particles, state), (mean, spread, info, observed)
+
+    num_steps = observations.shape[0]
+    step_keys = jax.random.split(steps_key, num_steps)
+    carry = (particles, state)
+    if save_every == 0:
+        carry, outputs = jax.lax.scan(step, carry, (step_keys, observations))
+        saved_particles = saved_log_weights = None
+    else:
+        # Outer scan over blocks of `save_every` steps saves the particles at each block's end;
+        # a short remainder scan finishes the trajectory.
+        num_blocks = num_steps // save_every
+        blocked = num_blocks * save_every
+
+        def block(carry, inputs):
+            carry, outputs = jax.lax.scan(step, carry, inputs)
+            return carry, (outputs, carry[0], carry[1].log_weights)
+
+        def to_blocks(array):
+            return array[:blocked].reshape(num_blocks, save_every, *array.shape[1:])
+
+        block_inputs = (to_blocks(step_keys), to_blocks(observations))
+        carry, (outputs, saved_particles, saved_log_weights) = jax.lax.scan(
+            block, carry, block_inputs
+        )
+        outputs = jax.tree.map(lambda a: a.reshape(blocked, *a.shape[2:]), outputs)
+        if blocked < num_steps:
+            carry, tail = jax.lax.scan(
+                step, carry, (step_keys[blocked:], observations[blocked:])
+            )
+            outputs = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
+    mean, spread, info, observed = outputs
+    saved_steps = (
+        np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
+    )
+    return FilterResult(
+        mean=mean,
+        spread=spread,
+        info=info,
+        observed=observed,
+        particles=saved_particles,
+        log_weights=saved_log_weights,
+        saved_steps=saved_steps,
+        final_particles=carry[0],
+        final_state=carry[1],
+    )

@@ -1,0 +1,82 @@
+"""The exact Kalman filter for ``ot_filter.models.linear_gaussian`` models.
+
+Predict:  m- = A m,            P- = A P A^T + Q
+Update:   S = H P- H^T + R,    K = P- H^T S^{-1},    m = m- + K (y - H m-),
+          P = (I - K H) P- (I - K H)^T + K R K^T        (Joseph form: stays symmetric PSD)
+Marginal: log p(y_t | y_{1:t-1}) = log N(y_t; H m-, S),  summed into ``log_likelihood``.
+
+S^{-1} is applied through its Cholesky factor, never formed. Observations with NaN are treated as
+missing (no update, no likelihood term), like ``run_filter``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ot_filter._linalg import symmetrise
+from ot_filter.model import StateSpaceModel
+from ot_filter.models.linear_gaussian import LinearGaussianParameters
+
+Array = jax.Array
+
+__all__ = ["KalmanResult", "kalman_filter"]
+
+
+class KalmanResult(NamedTuple):
+    mean: Array  # [T, n] filtering means E[X_t | y_{1:t}]
+    cov: Array  # [T, n, n] filtering covariances
+    log_likelihood: Array  # scalar, log p(y_{1:T})
+
+
+def kalman_filter(model: StateSpaceModel, observations: Array) -> KalmanResult:
+    """Exact filtering distributions of a linear-Gaussian model for ``observations[T, m]``."""
+    parameters = getattr(model, "parameters", None)
+    if not isinstance(parameters, LinearGaussianParameters):
+        raise TypeError(
+            "kalman_filter needs a model built by ot_filter.models.linear_gaussian "
+            "(model.parameters must be LinearGaussianParameters)"
+        )
+    m = parameters.observation_matrix.shape[0]
+    if jnp.ndim(observations) != 2 or jnp.shape(observations)[1] != m:
+        raise ValueError(f"observations must have shape [T, {m}], got {jnp.shape(observations)}")
+    return _kalman_filter(parameters, jnp.asarray(observations))
+
+
+@jax.jit
+def _kalman_filter(parameters: LinearGaussianParameters, observations: Array) -> KalmanResult:
+    A, Q, H, R, m0, P0 = parameters
+    dtype = jnp.result_type(A, observations)
+    identity = jnp.eye(A.shape[0], dtype=dtype)
+    observation_dim = H.shape[0]
+
+    def step(carry, y):
+        mean, cov = carry
+        mean = A @ mean
+        cov = symmetrise(A @ cov @ A.T + Q)
+        observed = jnp.all(jnp.isfinite(y))
+        y = jnp.where(observed, y, H @ mean)
+        innovation = y - H @ mean
+        innovation_cov = symmetrise(H @ cov @ H.T + R)
+        chol = jnp.linalg.cholesky(innovation_cov)
+        # K = P- H^T S^{-1} via two triangular solves with S's Cholesky factor.
+        gain = jax.scipy.linalg.cho_solve((chol, True), H @ cov).T
+        whitened = jax.scipy.linalg.solve_triangular(chol, innovation, lower=True)
+        log_likelihood = (
+            -0.5 * observation_dim * jnp.log(2 * jnp.pi)
+            - jnp.sum(jnp.log(jnp.diag(chol)))
+            - 0.5 * whitened @ whitened
+        )
+        posterior_mean = mean + gain @ innovation
+        joseph = identity - gain @ H
+        posterior_cov = symmetrise(joseph @ cov @ joseph.T + gain @ R @ gain.T)
+        mean = jnp.where(observed, posterior_mean, mean)
+        cov = jnp.where(observed, posterior_cov, cov)
+        log_likelihood = jnp.where(observed, log_likelihood, 0.0)
+        return (mean, cov), (mean, cov, log_likelihood)
+
+    initial = (m0.astype(dtype), P0.astype(dtype))
+    _, (means, covs, log_likelihoods) = jax.lax.scan(step, initial, observations.astype(dtype))
+    return KalmanResult(means, covs, jnp.sum(log_likelihoods))

