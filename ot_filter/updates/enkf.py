@@ -45,6 +45,8 @@ Array = jax.Array
 
 __all__ = ["EnKFInfo", "enkf"]
 
+MAX_ROTATED_PARTICLES = 4096
+
 
 class EnKFInfo(NamedTuple):
     innovation_condition: Array  # condition number of Cov(Y) (inf if singular, then regularised)
@@ -85,6 +87,11 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
                 )
             particles, condition = _square_root_update(mean, anomalies, observation, model)
         if rotate:
+            if particles.shape[0] > MAX_ROTATED_PARTICLES:
+                raise ValueError(
+                    f"enkf(rotate=True) builds an N x N rotation (O(N^3)); num_particles must be "
+                    f"<= {MAX_ROTATED_PARTICLES}, got {particles.shape[0]}"
+                )
             posterior_mean, posterior_anomalies = weighted_mean_and_anomalies(particles)
             particles = posterior_mean + _random_rotation(rotation_key, posterior_anomalies)
         return particles, state, EnKFInfo(condition)
