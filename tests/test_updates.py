@@ -1,0 +1,160 @@
+"""Single Bayes-update properties with closed forms, degenerate cases and input checks."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ot_filter as otf
+from conftest import random_linear_gaussian
+
+
+def one_step_problem(num_particles=64, seed=0):
+    A, Q, H, R, m0, P0 = random_linear_gaussian(seed)
+    model = otf.models.linear_gaussian(A, Q, H, R, m0, P0)
+    particles = jax.random.normal(jax.random.key(seed), (num_particles, 3)) * 1.3 + 0.5
+    observation = jnp.array([0.7, -1.1])
+    return model, particles, observation, (H, R)
+
+
+def sample_moments(particles):
+    particles = np.asarray(particles, np.float64)
+    return particles.mean(axis=0), np.cov(particles.T)
+
+
+def kalman_update(mean, cov, H, R, y):
+    S = H @ cov @ H.T + R
+    K = np.linalg.solve(S, H @ cov).T
+    return mean + K @ (y - H @ mean), cov - K @ H @ cov
+
+
+def test_square_root_enkf_is_exact_kalman_update_of_ensemble_moments(x64):
+    model, particles, y, (H, R) = one_step_problem()
+    update = otf.enkf(perturbed=False)
+    posterior, _, info = update.apply(jax.random.key(1), update.init(None, particles), particles, y, model)
+    mean, cov = sample_moments(particles)
+    expected_mean, expected_cov = kalman_update(mean, cov, H, R, np.asarray(y))
+    got_mean, got_cov = sample_moments(posterior)
+    np.testing.assert_allclose(got_mean, expected_mean, atol=1e-10)
+    np.testing.assert_allclose(got_cov, expected_cov, atol=1e-10)
+    assert np.isfinite(info.innovation_condition)
+
+
+def test_square_root_enkf_float32_close_to_float64():
+    model, particles, y, (H, R) = one_step_problem()
+    update = otf.enkf(perturbed=False)
+    posterior, _, _ = update.apply(jax.random.key(1), update.init(None, particles), particles, y, model)
+    mean, cov = sample_moments(particles)
+    expected_mean, expected_cov = kalman_update(mean, cov, H, R, np.asarray(y, np.float64))
+    got_mean, got_cov = sample_moments(posterior)
+    np.testing.assert_allclose(got_mean, expected_mean, atol=2e-5)
+    np.testing.assert_allclose(got_cov, expected_cov, atol=2e-5)
+
+
+def test_perturbed_enkf_mean_is_exact_with_centred_perturbations(x64):
+    model, particles, y, (H, R) = one_step_problem()
+    update = otf.enkf()
+    posterior, _, _ = update.apply(jax.random.key(2), update.init(None, particles), particles, y, model)
+    mean, cov = sample_moments(particles)
+    expected_mean, _ = kalman_update(mean, cov, H, R, np.asarray(y))
+    np.testing.assert_allclose(sample_moments(posterior)[0], expected_mean, atol=1e-10)
+
+
+def test_rotation_and_inflation(x64):
+    model, particles, y, _ = one_step_problem()
+    plain = otf.enkf(perturbed=False)
+    rotated = otf.enkf(perturbed=False, rotate=True)
+    state = plain.init(None, particles)
+    a, _, _ = plain.apply(jax.random.key(3), state, particles, y, model)
+    b, _, _ = rotated.apply(jax.random.key(3), state, particles, y, model)
+    assert not np.allclose(a, b)  # members moved ...
+    for got, want in zip(sample_moments(b), sample_moments(a)):  # ... moments kept exactly
+        np.testing.assert_allclose(got, want, atol=1e-10)
+    # Inflation = the plain update of the inflated prior.
+    inflated = otf.enkf(inflation=1.3, perturbed=False)
+    c, _, _ = inflated.apply(jax.random.key(3), state, particles, y, model)
+    mean = particles.mean(axis=0)
+    d, _, _ = plain.apply(jax.random.key(3), state, mean + 1.3 * (particles - mean), y, model)
+    np.testing.assert_allclose(c, d, atol=1e-10)
+
+
+def test_simulation_based_gain_with_singular_observation_covariance():
+    """Cov(Y) singular (duplicated noiseless observation): regularised, finite, reported."""
+    base = otf.models.squared_observation(dim=1)
+    model = base._replace(
+        sample_observation=lambda key, x: jnp.concatenate([x, x]),
+        observation_function=None, observation_noise_cov=None, log_likelihood=None,
+    )
+    particles = jax.random.normal(jax.random.key(0), (100, 1))
+    update = otf.enkf()
+    posterior, _, info = update.apply(jax.random.key(1), update.init(None, particles), particles,
+                                      jnp.array([0.5, 0.5]), model)
+    assert np.all(np.isfinite(posterior))
+    assert info.innovation_condition > 1e5  # flagged as (numerically) singular
+    np.testing.assert_allclose(posterior, 0.5, atol=1e-2)  # noiseless: collapses on y
+
+
+def test_sir_degenerate_weights_never_nan():
+    model, particles, y, _ = one_step_problem()
+    for bad in (-jnp.inf, jnp.nan):
+        broken = model._replace(log_likelihood=lambda y, x, bad=bad: bad + 0.0 * x[0])
+        update = otf.sir(jitter=0.5)
+        state = update.init(None, particles)
+        out, new_state, info = update.apply(jax.random.key(0), state, particles, y, broken)
+        assert bool(info.degenerate)
+        assert np.all(np.isfinite(out)) and np.all(np.isfinite(new_state.log_weights))
+    # Astronomically small but finite likelihoods are fine: normalised in the log domain.
+    tiny = model._replace(log_likelihood=lambda y, x: -1e30 - jnp.sum(x**2))
+    out, new_state, info = otf.sir().apply(jax.random.key(0), state, particles, y, tiny)
+    assert not bool(info.degenerate)
+    assert np.all(np.isfinite(out)) and np.isfinite(info.ess)
+
+
+def test_sir_carries_weights_below_threshold():
+    model, particles, y, _ = one_step_problem()
+    update = otf.sir(ess_threshold=0.0)  # never resample
+    state = update.init(None, particles)
+    out, new_state, info = update.apply(jax.random.key(0), state, particles, y, model)
+    assert not bool(info.resampled)
+    np.testing.assert_array_equal(out, particles)
+    expected = jax.vmap(model.log_likelihood, (None, 0))(y, particles)
+    expected = expected - jax.nn.logsumexp(expected)
+    np.testing.assert_allclose(new_state.log_weights, expected, atol=1e-5)
+    np.testing.assert_allclose(info.ess, otf.metrics.ess(expected), rtol=1e-5)
+
+
+def test_sir_jitter_adds_the_documented_covariance():
+    """Flat likelihood: resampling keeps Cov = C; jitter adds (jitter * N^(-1/(n+4)))^2 C."""
+    num = 200_000
+    particles = jax.random.normal(jax.random.key(0), (num, 2)) @ jnp.array([[1.0, 0.0], [0.6, 0.8]])
+    model = otf.models.squared_observation(dim=2)._replace(log_likelihood=lambda y, x: 0.0 * x[0])
+    jitter = 2.0
+    update = otf.sir(jitter=jitter)
+    out, _, _ = update.apply(jax.random.key(1), update.init(None, particles), particles, jnp.zeros(2), model)
+    factor = 1.0 + (jitter * num ** (-1.0 / 6.0)) ** 2
+    expected = factor * np.cov(np.asarray(particles, np.float64).T)
+    # Standard error of a covariance entry ~ sqrt(2 / N) * scale; 5 of them.
+    np.testing.assert_allclose(np.cov(np.asarray(out, np.float64).T), expected, atol=5 * np.sqrt(2 / num) * 2)
+
+
+def test_builders_reject_bad_configuration():
+    with pytest.raises(ValueError, match="inflation"):
+        otf.enkf(inflation=0.9)
+    with pytest.raises(ValueError, match="ess_threshold"):
+        otf.sir(ess_threshold=1.5)
+    with pytest.raises(ValueError, match="jitter"):
+        otf.sir(jitter=-1.0)
+
+
+def test_updates_reject_models_they_cannot_handle():
+    model, particles, y, _ = one_step_problem()
+    no_likelihood = model._replace(log_likelihood=None)
+    with pytest.raises(ValueError, match="log_likelihood"):
+        otf.sir().apply(jax.random.key(0), otf.sir().init(None, particles), particles, y, no_likelihood)
+    no_gaussian = model._replace(observation_noise_cov=None)
+    update = otf.enkf(perturbed=False)
+    with pytest.raises(ValueError, match="observation_noise_cov"):
+        update.apply(jax.random.key(0), update.init(None, particles), particles, y, no_gaussian)
+    big = jnp.zeros((5000, 3))
+    with pytest.raises(ValueError, match="rotate"):
+        otf.enkf(rotate=True).apply(jax.random.key(0), None, big, y, model)
