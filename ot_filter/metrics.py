@@ -81,8 +81,9 @@ def crps(ensemble: Array, truth: Array, fair: bool = False) -> Array:
     ordered = jnp.sort(ensemble, axis=0)
     ranks = jnp.arange(1, num + 1, dtype=ordered.dtype).reshape((num,) + (1,) * (ordered.ndim - 1))
     pair_sum = 2.0 * jnp.sum((2.0 * ranks - num - 1.0) * ordered, axis=0)  # sum_ij |x_i - x_j|
-    normaliser = num * (num - 1) if fair else num * num
-    return absolute_error - 0.5 * pair_sum / normaliser
+    # Divide in two steps: num^2 overflows int32 (and loses float32 precision) for large N.
+    second_factor = (num - 1) if fair else num
+    return absolute_error - 0.5 * (pair_sum / num) / second_factor
 
 
 def _as_samples(name: str, samples) -> Array:
