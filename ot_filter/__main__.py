@@ -1,0 +1,5 @@
+import sys
+
+from ot_filter.cli import main
+
+sys.exit(main())

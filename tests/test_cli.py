@@ -1,0 +1,24 @@
+"""The demo command: runs, writes its figure and numbers, reaches the published accuracy."""
+
+import json
+import os
+
+from ot_filter.cli import main
+
+
+def test_demo_writes_outputs(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out)]) == 0
+    assert (out / "demo.png").stat().st_size > 10_000
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["EnKF (square root, N=10)"]["rmse_a"] < 0.8
+    assert metrics["SIR (regularised, N=800)"]["rmse_a"] < 0.4
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_demo_unwritable_output_is_a_one_line_error(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    assert main(["demo", "--out", str(blocker / "sub")]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("ot-filter: error:") and error.count("\n") == 1
