@@ -12,14 +12,16 @@ purely simulated gain loses the track).
 
 Square root (``perturbed=False``, ETKF / EnSRKF with the symmetric square root), for additive
 Gaussian noise only: with anomalies A = X - mean, whitened observation anomalies
-S = (h(X) - mean h) L^{-T} / sqrt(N - 1) (R = L L^T) and d = L^{-1} (y - mean h), take the thin
-SVD S = U diag(s) V^T; then
+S = (h(X) - mean h) L^{-T} / sqrt(N - 1) (R = L L^T) and d = L^{-1} (y - mean h), and the thin
+SVD S = U diag(s) V^T (computed through the eigen-decomposition of the smaller Gram matrix)
 
     mean_a = mean + A^T U diag(s / (1 + s^2)) V^T d / sqrt(N - 1)
     A_a    = (I + S S^T)^{-1/2} A = A + U diag(1 / sqrt(1 + s^2) - 1) U^T A.
 
 Everything works on centred anomalies (N x n, N x m), never on raw second moments, so float32
-is as accurate as float64; the cost is O(N m min(N, m) + N n m), linear in N.
+is as accurate as float64; the cost is O(N m min(N, m) + N n m), linear in N. With additive
+Gaussian noise, Cov(h) + R is positive definite and solved by Cholesky; the simulation-based
+Cov(Y) may be singular and is solved by an eigen-decomposition with floored eigenvalues.
 
 Multiplicative inflation scales the prior anomalies by ``inflation`` before the update.
 
@@ -102,32 +104,46 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
 def _perturbed_update(key, particles, anomalies, observation, model):
     num_particles = particles.shape[0]
     if model.has_gaussian_observation_noise:
+        # Exact R: Cov(h) + R is positive definite, so Cholesky suffices (cheaper than eigh).
         predicted = jax.vmap(model.observation_function)(particles)
         noise_cov = jnp.asarray(model.observation_noise_cov, particles.dtype)
-        noise = jax.random.multivariate_normal(
-            key, jnp.zeros(observation.shape, particles.dtype), noise_cov, (num_particles,),
-            method="eigh",
-        )
+        noise_chol = jnp.linalg.cholesky(noise_cov)
+        noise = jax.random.normal(key, predicted.shape, particles.dtype) @ noise_chol.T
         noise = noise - jnp.mean(noise, axis=0)  # centred perturbations: no sampling bias
         _, predicted_anomalies = weighted_mean_and_anomalies(predicted)
-        simulated = predicted + noise
         innovation_cov = predicted_anomalies.T @ predicted_anomalies / (num_particles - 1) + noise_cov
-    else:
-        keys = jax.random.split(key, num_particles)
-        simulated = jax.vmap(model.sample_observation)(keys, particles)
-        _, predicted_anomalies = weighted_mean_and_anomalies(simulated)
-        innovation_cov = predicted_anomalies.T @ predicted_anomalies / (num_particles - 1)
-    cross_cov = anomalies.T @ predicted_anomalies / (num_particles - 1)  # [n, m]
-    innovations = observation - simulated  # [N, m]
+        cross_cov = anomalies.T @ predicted_anomalies / (num_particles - 1)  # [n, m]
+        innovations = observation - predicted - noise  # [N, m]
+        chol = jnp.linalg.cholesky(innovation_cov)
+        solved = jax.scipy.linalg.cho_solve((chol, True), innovations.T)
+        diagonal = jnp.diag(chol)
+        condition = (jnp.max(diagonal) / jnp.min(diagonal)) ** 2  # cheap lower bound
+        return particles + (cross_cov @ solved).T, condition
+    # Simulation-based: Cov(Y) is estimated and may be singular (e.g. N <= m): floored eigh.
+    keys = jax.random.split(key, num_particles)
+    simulated = jax.vmap(model.sample_observation)(keys, particles)
+    _, simulated_anomalies = weighted_mean_and_anomalies(simulated)
+    innovation_cov = simulated_anomalies.T @ simulated_anomalies / (num_particles - 1)
+    cross_cov = anomalies.T @ simulated_anomalies / (num_particles - 1)
     eps = jnp.finfo(particles.dtype).eps
     solved, condition = floored_pinv_solve(
-        innovation_cov, innovations.T, relative_floor=observation.shape[0] * eps
+        innovation_cov, (observation - simulated).T, relative_floor=observation.shape[0] * eps
     )
     return particles + (cross_cov @ solved).T, condition
 
 
 def _square_root_update(mean, anomalies, observation, model):
+    """ETKF with the symmetric square root through the smaller Gram matrix of S (see above).
+
+    With S S^T = U diag(s2) U^T (N <= m) the transform is A + U diag(f(s2)) U^T A with
+    f(s2) = 1 / sqrt(1 + s2) - 1 and the mean weights U diag(1 / (1 + s2)) U^T S d. With
+    S^T S = V diag(s2) V^T (m < N), U = S V diag(s)^-1 gives A + S V diag(f(s2) / s2) V^T S^T A,
+    where f(s2) / s2 = -1 / (sqrt(1 + s2) (1 + sqrt(1 + s2))) is finite at s2 = 0, and the
+    mean weights S V diag(1 / (1 + s2)) V^T d. Adding the identity keeps the Gram matrix's
+    squared condition number harmless: only 1 + s2 matters.
+    """
     num_particles = anomalies.shape[0]
+    m = observation.shape[0]
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
     predicted_mean, predicted_anomalies = weighted_mean_and_anomalies(predicted)
@@ -138,15 +154,23 @@ def _square_root_update(mean, anomalies, observation, model):
     innovation = jax.scipy.linalg.solve_triangular(
         noise_chol, observation - predicted_mean, lower=True
     )  # d [m]
-    left, singular, right_t = jnp.linalg.svd(whitened, full_matrices=False)
-    one_plus = 1.0 + singular**2
-    mean_weights = left @ ((singular / one_plus) * (right_t @ innovation))  # [N]
+    if num_particles <= m:
+        s2, left = jnp.linalg.eigh(whitened @ whitened.T)
+        s2 = jnp.clip(s2, 0.0)
+        mean_weights = left @ ((left.T @ (whitened @ innovation)) / (1.0 + s2))
+        shrink = 1.0 / jnp.sqrt(1.0 + s2) - 1.0
+        posterior_anomalies = anomalies + left @ (shrink[:, None] * (left.T @ anomalies))
+    else:
+        s2, right = jnp.linalg.eigh(whitened.T @ whitened)
+        s2 = jnp.clip(s2, 0.0)
+        mean_weights = whitened @ (right @ ((right.T @ innovation) / (1.0 + s2)))
+        root = jnp.sqrt(1.0 + s2)
+        shrink_over_s2 = -1.0 / (root * (1.0 + root))
+        projected = right.T @ (whitened.T @ anomalies)  # [m, n]
+        posterior_anomalies = anomalies + whitened @ (right @ (shrink_over_s2[:, None] * projected))
     posterior_mean = mean + mean_weights @ anomalies / scale
-    shrink = 1.0 / jnp.sqrt(one_plus) - 1.0
-    posterior_anomalies = anomalies + left @ (shrink[:, None] * (left.T @ anomalies))
-    m = observation.shape[0]
-    smallest = jnp.where(singular.shape[0] < m, 1.0, jnp.min(one_plus))
-    return posterior_mean + posterior_anomalies, jnp.max(one_plus) / smallest
+    smallest = jnp.where(num_particles - 1 < m, 1.0, 1.0 + jnp.min(s2))
+    return posterior_mean + posterior_anomalies, (1.0 + jnp.max(s2)) / smallest
 
 
 def _random_rotation(key, anomalies):
