@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ot_filter.metrics import spread as ensemble_spread
 from ot_filter.model import StateSpaceModel, model_dimensions
 from ot_filter.updates.base import BayesUpdate
 
@@ -36,7 +37,8 @@ class FilterResult(NamedTuple):
 
     Attributes:
       mean: ``[T, n]`` filtering mean after each update (weighted by the particle weights).
-      spread: ``[T]`` ensemble spread, sqrt of the mean over components of the weighted variance.
+      spread: ``[T]`` ensemble spread (``metrics.spread``: sqrt of the mean over components of the
+        unbiased weighted variance, as DAPPER's).
       info: the update's per-step diagnostics, each leaf with a leading axis T.
       observed: ``[T]`` bool, False where the observation had NaN and the update was skipped.
       particles: ``[S, N, n]`` particles after the updates at ``saved_steps`` (None if S = 0).
@@ -143,9 +145,8 @@ def _run_filter(key, model, update, observations, num_particles, save_every, ini
             skip,
             update_key, state, particles, safe_observation,
         )
-        weights = jnp.exp(state.log_weights)
-        mean = weights @ particles
-        spread = jnp.sqrt(jnp.mean(weights @ (particles - mean) ** 2))
+        mean = jnp.exp(state.log_weights) @ particles
+        spread = ensemble_spread(particles, state.log_weights)
         return (particles, state), (mean, spread, info, observed)
 
     num_steps = observations.shape[0]

@@ -118,3 +118,10 @@ def test_bad_input_is_rejected_before_work(setup):
         otf.run_filter(key, bad_model, update, observations, 10)
     with pytest.raises(TypeError, match="StateSpaceModel"):
         otf.run_filter(key, object(), update, observations, 10)
+
+
+def test_spread_output_is_metrics_spread(setup):
+    model, _, observations = setup
+    result = otf.run_filter(jax.random.key(4), model, otf.sir(ess_threshold=0.0), observations, 64)
+    expected = otf.metrics.spread(result.particles, result.log_weights)
+    np.testing.assert_allclose(result.spread, expected, rtol=1e-5)

@@ -61,7 +61,6 @@ def test_mmd_rejects_bad_input():
         metrics.mmd(x, x, y_weights=jnp.ones(4))
 
 
-@pytest.mark.slow
 def test_mmd_large_samples_in_bounded_memory():
     """10^5 x 10^4 samples: blocks of 1024^2 kernel values, never a 10^5 x 10^5 matrix."""
     x = jax.random.normal(jax.random.key(0), (100_000, 2))
