@@ -124,4 +124,5 @@ def test_spread_output_is_metrics_spread(setup):
     model, _, observations = setup
     result = otf.run_filter(jax.random.key(4), model, otf.sir(ess_threshold=0.0), observations, 64)
     expected = otf.metrics.spread(result.particles, result.log_weights)
-    np.testing.assert_allclose(result.spread, expected, rtol=1e-5)
+    # Same formula, fused inside the scan vs eager: float32 rounding (1/(1 - sum w^2) amplifies it).
+    np.testing.assert_allclose(result.spread, expected, rtol=1e-4)
