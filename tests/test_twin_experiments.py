@@ -4,6 +4,13 @@ Configurations and published analysis RMSEs are those DAPPER (v1.7) lists for
 Lorenz-63 / Sakov et al. (2012) and Lorenz-96 / Sakov & Oke (2008). rmse.a is DAPPER's: the
 per-analysis RMSE over components, averaged over analyses after the burn-in. We average it over
 8 independent truths (one vmapped program) to keep seed luck out of a 10% comparison.
+
+One configuration is marginal: the Lorenz-96 square-root EnKF with inflation 1.013 loses the
+track in about 4% of 1,001-cycle runs, in ot_filter (32 of 768 runs, float32 and float64 alike)
+and in DAPPER itself (4 of 136 runs, and 1 of the 8 in benchmarks/results/lorenz_twin.md). A
+single such run dominates a mean of 8, so for that configuration we compare the median with the
+published value and bound the number of divergent runs (rmse.a > 2x published) by 2 of 8
+(probability about 0.3% at a 4% rate). The stable configurations are held to the mean.
 """
 
 import jax
@@ -24,6 +31,10 @@ def twins(model, num_truths=NUM_TRUTHS, seed=0):
 
 
 def mean_rmse(model, update, num_particles, burn_in, seed=0, data=None, average=np.mean):
+    return float(average(rmse_per_truth(model, update, num_particles, burn_in, seed, data)))
+
+
+def rmse_per_truth(model, update, num_particles, burn_in, seed=0, data=None):
     states, observations = twins(model, seed=seed) if data is None else data
     filter_keys = jax.random.split(jax.random.key(seed + 1), states.shape[0])
     run = jax.jit(jax.vmap(
@@ -31,22 +42,26 @@ def mean_rmse(model, update, num_particles, burn_in, seed=0, data=None, average=
     ))
     rmse = otf.metrics.rmse(run(filter_keys, observations), states)[:, burn_in:].mean(axis=1)
     assert np.all(np.isfinite(rmse))
-    return float(average(rmse))
+    return np.asarray(rmse, np.float64)
 
 
-CASES = {
-    "lorenz63-enkf-sqrt-N10": (otf.models.lorenz63, lambda: otf.enkf(1.02, perturbed=False, rotate=True), 10, LORENZ63_BURN_IN, 0.60),
-    "lorenz63-sir-N800": (otf.models.lorenz63, lambda: otf.sir(ess_threshold=0.2, jitter=0.9), 800, LORENZ63_BURN_IN, 0.28),
-    "lorenz96-enkf-perturbed-N40": (otf.models.lorenz96, lambda: otf.enkf(1.06), 40, LORENZ96_BURN_IN, 0.22),
-    "lorenz96-enkf-sqrt-N24": (otf.models.lorenz96, lambda: otf.enkf(1.013, perturbed=False, rotate=True), 24, LORENZ96_BURN_IN, 0.18),
+CASES = {  # model, update, N, burn-in, published rmse.a, marginal (occasionally diverges)
+    "lorenz63-enkf-sqrt-N10": (otf.models.lorenz63, lambda: otf.enkf(1.02, perturbed=False, rotate=True), 10, LORENZ63_BURN_IN, 0.60, False),
+    "lorenz63-sir-N800": (otf.models.lorenz63, lambda: otf.sir(ess_threshold=0.2, jitter=0.9), 800, LORENZ63_BURN_IN, 0.28, False),
+    "lorenz96-enkf-perturbed-N40": (otf.models.lorenz96, lambda: otf.enkf(1.06), 40, LORENZ96_BURN_IN, 0.22, False),
+    "lorenz96-enkf-sqrt-N24": (otf.models.lorenz96, lambda: otf.enkf(1.013, perturbed=False, rotate=True), 24, LORENZ96_BURN_IN, 0.18, True),
 }
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_published_rmse_within_ten_percent(case):
-    build_model, build_update, num_particles, burn_in, published = CASES[case]
-    rmse = mean_rmse(build_model(), build_update(), num_particles, burn_in)
-    assert rmse < 1.10 * published, (case, rmse, published)
+    build_model, build_update, num_particles, burn_in, published, marginal = CASES[case]
+    rmse = rmse_per_truth(build_model(), build_update(), num_particles, burn_in)
+    if marginal:
+        assert np.median(rmse) < 1.10 * published, (case, rmse, published)
+        assert np.sum(rmse > 2 * published) <= 2, (case, rmse)
+    else:
+        assert rmse.mean() < 1.10 * published, (case, rmse, published)
 
 
 def per_run_rmse(model, update, data, seeds=(1, 2, 3)):

@@ -158,3 +158,28 @@ def test_updates_reject_models_they_cannot_handle():
     big = jnp.zeros((5000, 3))
     with pytest.raises(ValueError, match="rotate"):
         otf.enkf(rotate=True).apply(jax.random.key(0), None, big, y, model)
+
+
+def test_random_rotation_is_haar_on_the_complement_of_ones(x64):
+    """O = rotation(C) + 11^T/N for the centring matrix C. Checks O O^T = I and O 1 = 1, and for
+    the block Q acting on the complement (in the basis of the Householder reflection P): the
+    Haar moments E[Q] = 0, E[Q_ij^2] = 1/d, E[Q_ij^4] = 3/(d(d+2)), d = N - 1 (5 std errors)."""
+    from ot_filter.updates.enkf import _random_rotation
+
+    num, draws = 6, 4000
+    centring = jnp.eye(num) - 1.0 / num
+    ones = jnp.ones((num, num)) / num
+    rotations = jax.vmap(lambda k: _random_rotation(k, centring) + ones)(
+        jax.random.split(jax.random.key(0), draws)
+    )
+    np.testing.assert_allclose(rotations @ jnp.swapaxes(rotations, 1, 2), np.broadcast_to(np.eye(num), rotations.shape), atol=1e-10)
+    np.testing.assert_allclose(rotations.sum(axis=2), 1.0, atol=1e-10)
+    direction = np.eye(num)[0] - 1.0 / np.sqrt(num)
+    direction /= np.linalg.norm(direction)
+    reflection = np.eye(num) - 2 * np.outer(direction, direction)
+    blocks = np.einsum("ij,bjk,kl->bil", reflection, np.asarray(rotations), reflection)[:, 1:, 1:]
+    d = num - 1
+    for power, expected in ((1, 0.0), (2, 1.0 / d), (4, 3.0 / (d * (d + 2)))):
+        values = blocks**power
+        error = np.abs(values.mean(axis=0) - expected)
+        np.testing.assert_array_less(error, 5 * values.std(axis=0) / np.sqrt(draws) + 1e-12)

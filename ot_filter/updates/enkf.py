@@ -147,13 +147,15 @@ def _square_root_update(mean, anomalies, observation, model):
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
     predicted_mean, predicted_anomalies = weighted_mean_and_anomalies(predicted)
+    # Whitening matrix L^{-1} of the model's constant R, formed once: the whitening is then a
+    # matmul. (Triangular solves against the ensemble would become one batched LAPACK solve per
+    # member under vmap, which is slower and deadlocked jaxlib's CPU thread pool for vmaps over
+    # 128+ simulations on 2 cores.)
     noise_chol = jnp.linalg.cholesky(jnp.asarray(model.observation_noise_cov, dtype))
+    whitening = jax.scipy.linalg.solve_triangular(noise_chol, jnp.eye(m, dtype=dtype), lower=True)
     scale = jnp.sqrt(jnp.asarray(num_particles - 1, dtype))
-    whitened = jax.scipy.linalg.solve_triangular(noise_chol, predicted_anomalies.T, lower=True)
-    whitened = whitened.T / scale  # S [N, m]
-    innovation = jax.scipy.linalg.solve_triangular(
-        noise_chol, observation - predicted_mean, lower=True
-    )  # d [m]
+    whitened = predicted_anomalies @ whitening.T / scale  # S [N, m]
+    innovation = whitening @ (observation - predicted_mean)  # d [m]
     if num_particles <= m:
         s2, left = jnp.linalg.eigh(whitened @ whitened.T)
         s2 = jnp.clip(s2, 0.0)
@@ -176,8 +178,11 @@ def _square_root_update(mean, anomalies, observation, model):
 def _random_rotation(key, anomalies):
     """O A with O a Haar-random orthogonal matrix on the complement of the ones vector.
 
-    The Householder reflection H (symmetric, orthogonal) maps e_1 to ones / sqrt(N), so
-    O = H diag(1, Q) H with Q Haar on O(N - 1) satisfies O 1 = 1.
+    The Householder reflection P (symmetric, orthogonal) maps e_1 to ones / sqrt(N), so
+    O = P diag(1, Q) P with Q Haar on O(N - 1) satisfies O 1 = 1. Q is drawn by Stewart's (1980)
+    algorithm, a product of N - 2 random Householder reflections and random signs, applied to
+    the anomalies one reflection at a time: O(N^2 n), no N x N matrix and no LAPACK QR (a
+    batched QR under vmap deadlocked jaxlib's CPU thread pool for 256 simulations).
     """
     num = anomalies.shape[0]
     dtype = anomalies.dtype
@@ -187,9 +192,27 @@ def _random_rotation(key, anomalies):
     def reflect(matrix):
         return matrix - 2.0 * jnp.outer(direction, direction @ matrix)
 
-    gaussian = jax.random.normal(key, (num - 1, num - 1), dtype)
-    q, r = jnp.linalg.qr(gaussian)
-    q = q * jnp.sign(jnp.diag(r))  # sign fix: Haar distributed
+    size = num - 1  # Q acts on rows 1..N-1 of the reflected anomalies
+    gaussians_key, sign_key = jax.random.split(key)
+    gaussians = jax.random.normal(gaussians_key, (size, size), dtype)
+    signs = jnp.where(jax.random.bernoulli(sign_key, 0.5, (size,)), 1.0, -1.0).astype(dtype)
+
+    def stewart_factors(k):
+        # Reflection k acts on coordinates k..size-1; its sign factor is -sign(x_k).
+        x = jnp.where(jnp.arange(size) >= k, gaussians[k], 0.0)
+        pivot_sign = jnp.where(x[k] >= 0, 1.0, -1.0).astype(dtype)
+        u = x.at[k].add(pivot_sign * jnp.linalg.norm(x))
+        return u / jnp.linalg.norm(u), -pivot_sign
+
+    ks = jnp.arange(size - 1)
+    vectors, reflection_signs = jax.vmap(stewart_factors)(ks)
+    diagonal = signs.at[: size - 1].set(reflection_signs)
+
+    def apply_reflection(i, rows):
+        u = vectors[size - 2 - i]  # Q = H_0 H_1 ... H_{size-2} D: apply the last one first
+        return rows - 2.0 * jnp.outer(u, u @ rows)
+
     reflected = reflect(anomalies)
-    rotated = reflected.at[1:].set(q @ reflected[1:])
-    return reflect(rotated)
+    rows = diagonal[:, None] * reflected[1:]
+    rows = jax.lax.fori_loop(0, size - 1, apply_reflection, rows)
+    return reflect(reflected.at[1:].set(rows))
