@@ -22,28 +22,43 @@ def psd_sqrt(matrix: Array) -> Array:
     return eigenvectors * jnp.sqrt(jnp.clip(eigenvalues, 0.0))
 
 
-def weighted_mean_and_anomalies(particles: Array, weights: Array | None = None):
-    """Mean ``[n]`` and centred anomalies ``[N, n]``; weights ``[N]`` sum to one (or None)."""
-    if weights is None:
-        mean = jnp.mean(particles, axis=0)
-    else:
-        mean = weights @ particles
-    return mean, particles - mean
+def mean_and_anomalies(particles: Array):
+    """Mean ``[n]`` and centred anomalies ``[N, n]`` of equally weighted particles."""
+    mean = jnp.mean(particles, axis=-2, keepdims=True)
+    return mean[..., 0, :], particles - mean
 
 
-def floored_pinv_solve(matrix: Array, rhs: Array, relative_floor: float):
-    """Solves ``M Z = rhs`` for symmetric PSD ``M[m, m]`` via eigh, flooring small eigenvalues.
+def weighted_covariance(particles: Array, log_weights: Array) -> Array:
+    """Unbiased weighted covariance ``[..., n, n]`` of ``particles[..., N, n]``.
 
-    Eigenvalues below ``relative_floor * max eigenvalue`` are raised to that floor, so a
-    singular or ill-conditioned M gives a finite (regularised) answer instead of inf/NaN.
+    C = sum_i w_i (x_i - mean)(x_i - mean)^T / (1 - sum_i w_i^2). When (nearly) all the mass sits
+    on one particle the factor is 0 / 0; the equally weighted covariance is used instead (as
+    DAPPER does), so that a collapsed ensemble still gets a usable spread estimate.
+    """
+    weights = jnp.exp(log_weights - jax.nn.logsumexp(log_weights, axis=-1, keepdims=True))
+    eps = jnp.finfo(particles.dtype).eps
+    collapsed = 1.0 - jnp.max(weights, axis=-1, keepdims=True) < 100 * eps
+    weights = jnp.where(collapsed, 1.0 / particles.shape[-2], weights)
+    mean = jnp.einsum("...i,...ij->...j", weights, particles)
+    anomalies = particles - mean[..., None, :]
+    sum_squared = jnp.sum(weights**2, axis=-1)[..., None, None]
+    covariance = jnp.einsum("...i,...ij,...ik->...jk", weights, anomalies, anomalies)
+    return covariance / (1.0 - sum_squared)
 
-    Returns ``(Z, condition)``: condition is max/min eigenvalue before flooring (inf if singular).
+
+def truncated_pinv_solve(matrix: Array, rhs: Array, relative_cutoff: float):
+    """Minimum-norm solution of ``M Z = rhs`` for symmetric PSD ``M[m, m]`` (pseudo-inverse).
+
+    Eigen-directions with eigenvalue <= ``relative_cutoff * max eigenvalue`` are dropped
+    (round-off there would otherwise be amplified by 1 / cutoff); M = 0 gives Z = 0.
+
+    Returns ``(Z, condition)``: condition is max / min eigenvalue (inf if singular).
     """
     eigenvalues, eigenvectors = jnp.linalg.eigh(symmetrise(matrix))
     largest = jnp.max(eigenvalues)
-    floor = jnp.maximum(relative_floor * largest, jnp.finfo(matrix.dtype).tiny)
     smallest = jnp.min(eigenvalues)
+    kept = eigenvalues > jnp.maximum(relative_cutoff * largest, jnp.finfo(matrix.dtype).tiny)
+    inverse_eigenvalues = jnp.where(kept, 1.0 / jnp.where(kept, eigenvalues, 1.0), 0.0)
     condition = jnp.where(smallest > 0, largest / jnp.where(smallest > 0, smallest, 1.0), jnp.inf)
-    inverse_eigenvalues = 1.0 / jnp.maximum(eigenvalues, floor)
     solution = eigenvectors @ (inverse_eigenvalues[:, None] * (eigenvectors.T @ rhs))
     return solution, condition

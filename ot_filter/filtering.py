@@ -43,7 +43,7 @@ class FilterResult(NamedTuple):
       observed: ``[T]`` bool, False where the observation had NaN and the update was skipped.
       particles: ``[S, N, n]`` particles after the updates at ``saved_steps`` (None if S = 0).
       log_weights: ``[S, N]`` their normalised log-weights (None if S = 0).
-      saved_steps: ``[S]`` int, the time indices (0-based) at which particles were saved.
+      saved_steps: ``[S]`` NumPy int array, the time indices (0-based) of the saved particles.
       final_particles: ``[N, n]`` particles after the last step (to continue filtering).
       final_state: the update's state after the last step.
     """
@@ -77,7 +77,7 @@ def run_filter(
       observations: ``[T, m]`` observations y_1..y_T (rows with NaN are treated as missing).
       num_particles: N >= 2 (static).
       save_every: keep the particles of every k-th step (steps k-1, 2k-1, ...); 1 keeps all,
-        0 keeps none (static).
+        0 keeps none, as does any k > T (static).
       initial_particles: optional ``[N, n]`` initial ensemble instead of N draws from pi_0
         (e.g. a filter started from a different prior than the truth).
 
@@ -108,10 +108,15 @@ def run_filter(
             raise ValueError(
                 f"initial_particles must have shape {expected}, got {jnp.shape(initial_particles)}"
             )
-    return _run_filter(
+    num_steps = jnp.shape(observations)[0]
+    if save_every > num_steps:
+        save_every = 0  # no step would be saved
+    result = _run_filter(
         key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
         initial_particles,
     )
+    saved_steps = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
+    return result._replace(saved_steps=saved_steps)
 
 
 @partial(jax.jit, static_argnames=("update", "num_particles", "save_every"))
@@ -179,9 +184,6 @@ def _run_filter(key, model, update, observations, num_particles, save_every, ini
             )
             outputs = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
     mean, spread, info, observed = outputs
-    saved_steps = (
-        np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
-    )
     return FilterResult(
         mean=mean,
         spread=spread,
@@ -189,7 +191,7 @@ def _run_filter(key, model, update, observations, num_particles, save_every, ini
         observed=observed,
         particles=saved_particles,
         log_weights=saved_log_weights,
-        saved_steps=saved_steps,
+        saved_steps=None,  # filled in outside jit (a static NumPy array)
         final_particles=carry[0],
         final_state=carry[1],
     )

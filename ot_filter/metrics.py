@@ -18,6 +18,9 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from ot_filter._linalg import weighted_covariance
 
 Array = jax.Array
 
@@ -59,12 +62,8 @@ def spread(particles: Array, log_weights: Array | None = None) -> Array:
     particles = jnp.asarray(particles)
     if log_weights is None:
         return jnp.sqrt(jnp.mean(jnp.var(particles, axis=-2, ddof=1), axis=-1))
-    weights = jnp.exp(log_weights - jax.nn.logsumexp(log_weights, axis=-1, keepdims=True))
-    mean = jnp.einsum("...i,...ij->...j", weights, particles)
-    variance = jnp.einsum("...i,...ij->...j", weights, (particles - mean[..., None, :]) ** 2)
-    sum_squared = jnp.sum(weights**2, axis=-1)
-    unbias = jnp.where(sum_squared < 1.0, 1.0 / (1.0 - sum_squared), 0.0)
-    return jnp.sqrt(unbias * jnp.mean(variance, axis=-1))
+    covariance = weighted_covariance(particles, jnp.asarray(log_weights))
+    return jnp.sqrt(jnp.mean(jnp.diagonal(covariance, axis1=-2, axis2=-1), axis=-1))
 
 
 def crps(ensemble: Array, truth: Array, fair: bool = False) -> Array:
@@ -98,23 +97,36 @@ def _as_samples(name: str, samples) -> Array:
 def _as_weights(name: str, weights, num: int, dtype) -> Array:
     if weights is None:
         return jnp.full((num,), 1.0 / num, dtype)
+    if jnp.shape(weights) != (num,):
+        raise ValueError(f"{name} must have shape ({num},), got {jnp.shape(weights)}")
+    if not isinstance(weights, jax.core.Tracer):
+        values = np.asarray(weights, dtype=np.float64)
+        if not (np.all(np.isfinite(values)) and np.all(values >= 0) and values.sum() > 0):
+            raise ValueError(f"{name} must be finite, non-negative and not all zero")
     weights = jnp.asarray(weights, dtype)
-    if weights.shape != (num,):
-        raise ValueError(f"{name} must have shape ({num},), got {weights.shape}")
     return weights / jnp.sum(weights)
 
 
+def _check_block_size(block_size) -> None:
+    if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
+        raise ValueError(f"block_size must be a positive int, got {block_size!r}")
+
+
 def median_bandwidth(x: Array, y: Array, max_points: int = 1000) -> Array:
-    """Median heuristic: the median pairwise distance of the pooled samples.
+    """Median heuristic: the median of the non-zero pairwise distances of the pooled samples.
 
     Uses an evenly strided subsample of at most ``max_points`` points, so it is cheap for any size.
+    Zero distances (duplicates, e.g. after resampling) are left out so the bandwidth stays
+    positive; if all points coincide the bandwidth is 1.
     """
     pooled = jnp.concatenate([_as_samples("x", x), _as_samples("y", y)])
     stride = max(1, pooled.shape[0] // max_points)
     subsample = pooled[::stride][:max_points]
+    subsample = subsample - jnp.mean(subsample, axis=0)
     distances = jnp.sqrt(_squared_distances(subsample, subsample))
-    upper = jnp.triu_indices(subsample.shape[0], k=1)
-    return jnp.median(distances[upper])
+    upper = distances[jnp.triu_indices(subsample.shape[0], k=1)]
+    median = jnp.nanmedian(jnp.where(upper > 0, upper, jnp.nan))
+    return jnp.where(jnp.isnan(median), 1.0, median)
 
 
 def _squared_distances(a: Array, b: Array) -> Array:
@@ -197,9 +209,10 @@ def mmd(
     x, y, wx, wy = _prepare(x, y, x_weights, y_weights)
     if unbiased and (x.shape[0] < 2 or y.shape[0] < 2):
         raise ValueError("unbiased=True needs at least 2 samples in x and in y")
+    _check_block_size(block_size)
     if bandwidth is None:
         bandwidth = median_bandwidth(x, y)
-    elif not float(bandwidth) > 0:
+    elif not isinstance(bandwidth, jax.core.Tracer) and not float(bandwidth) > 0:
         raise ValueError(f"bandwidth must be > 0, got {bandwidth}")
     scale = jnp.asarray(bandwidth, x.dtype)
     block_x, block_y = min(block_size, x.shape[0]), min(block_size, y.shape[0])
@@ -227,6 +240,7 @@ def energy_distance(
     block_size: int = 1024,
 ) -> Array:
     """Energy distance 2 E|X - Y| - E|X - X'| - E|Y - Y'| (V-statistic, >= 0), blocked."""
+    _check_block_size(block_size)
     x, y, wx, wy = _prepare(x, y, x_weights, y_weights)
     block_x, block_y = min(block_size, x.shape[0]), min(block_size, y.shape[0])
     one = jnp.ones((), x.dtype)

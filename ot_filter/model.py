@@ -12,7 +12,10 @@ which the EnKF then uses exactly.
 
 ``StateSpaceModel`` is a pytree: its functions are static (part of the tree structure, compared
 by identity) and its arrays (``observation_noise_cov``, ``parameters``) are leaves, so a model
-can be passed straight into ``jax.jit``-compiled functions.
+can be passed straight into ``jax.jit``-compiled functions. The built-in models' functions
+close over their own parameters: treat the leaves as read-only descriptions of them
+(``model._replace(observation_noise_cov=R2)`` changes what the EnKF uses, not the simulator);
+build a new model to change a parameter.
 """
 
 from __future__ import annotations
@@ -22,10 +25,31 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 Array = jax.Array
 
 __all__ = ["StateSpaceModel", "simulate", "model_dimensions"]
+
+
+def check_covariance(name: str, matrix, size: int, positive_definite: bool) -> None:
+    """Raises ValueError (naming ``name``) unless ``matrix`` is a finite symmetric [size, size]
+    positive (semi-)definite matrix. Traced values (inside jit / vmap) are only shape-checked."""
+    if np.shape(matrix) != (size, size):
+        raise ValueError(f"{name} must have shape ({size}, {size}), got {np.shape(matrix)}")
+    if isinstance(matrix, jax.core.Tracer):
+        return
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if not np.all(np.isfinite(matrix)):
+        raise ValueError(f"{name} must be finite")
+    scale = max(1.0, float(np.abs(matrix).max()))
+    if not np.allclose(matrix, matrix.T, rtol=1e-6, atol=1e-10 * scale):
+        raise ValueError(f"{name} must be symmetric")
+    smallest = float(np.linalg.eigvalsh(matrix).min())
+    if positive_definite and smallest <= 0:
+        raise ValueError(f"{name} must be positive definite (smallest eigenvalue {smallest:.3g})")
+    if smallest < -1e-8 * scale:
+        raise ValueError(f"{name} must be positive semi-definite (smallest eigenvalue {smallest:.3g})")
 
 
 class StateSpaceModel(NamedTuple):
@@ -110,9 +134,7 @@ def model_dimensions(model: StateSpaceModel) -> tuple[int, int]:
                 f"got {hx.shape}"
             )
     if model.observation_noise_cov is not None:
-        shape = jnp.shape(model.observation_noise_cov)
-        if shape != (m, m):
-            raise ValueError(f"model.observation_noise_cov must have shape ({m}, {m}), got {shape}")
+        check_covariance("model.observation_noise_cov", model.observation_noise_cov, m, True)
     if model.log_likelihood is not None:
         value = jax.eval_shape(model.log_likelihood, y, x)
         if value.shape != ():

@@ -26,6 +26,8 @@ def test_save_every_changes_storage_not_results(setup, update):
     np.testing.assert_allclose(every3.particles, full.particles[np.array([2, 5, 8])], rtol=1e-6)
     none = otf.run_filter(jax.random.key(0), model, update, observations, 32, save_every=0)
     assert none.particles is None and none.log_weights is None
+    beyond = otf.run_filter(jax.random.key(0), model, update, observations, 32, save_every=11)
+    assert beyond.particles is None and beyond.saved_steps.size == 0
     for result in (every3, none):
         np.testing.assert_allclose(result.mean, full.mean, rtol=1e-6)
         np.testing.assert_allclose(result.final_particles, full.particles[-1], rtol=1e-6)

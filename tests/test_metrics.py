@@ -27,8 +27,11 @@ def test_mmd_matches_closed_form():
     unbiased = float(metrics.mmd(x, y, bandwidth=h, unbiased=True, squared=True))
     # U-statistic standard deviation at this size is about 3e-3 (checked by replication).
     assert abs(unbiased - exact) < 0.015
+    # The V-statistic adds the diagonal terms: E = exact + (1 - E k(X, X')) (1/N + 1/M).
     biased = float(metrics.mmd(x, y, bandwidth=h, squared=True))
-    assert biased > unbiased  # the V-statistic includes the positive diagonal terms
+    same_kernel_mean = (h**2 / (h**2 + 2.0)) ** (dim / 2)
+    expected_biased = exact + (1 - same_kernel_mean) * 2 / num
+    assert abs(biased - unbiased - (expected_biased - exact)) < 1e-4
     same = float(metrics.mmd(x, jax.random.normal(jax.random.key(2), (num, dim)), bandwidth=h))
     assert same < 0.05 < math.sqrt(exact)
 
@@ -59,6 +62,12 @@ def test_mmd_rejects_bad_input():
         metrics.mmd(x, x, unbiased=True, x_weights=jnp.ones(5))
     with pytest.raises(ValueError, match="y_weights"):
         metrics.mmd(x, x, y_weights=jnp.ones(4))
+    with pytest.raises(ValueError, match="x_weights"):
+        metrics.mmd(x, x, x_weights=-jnp.ones(5))
+    with pytest.raises(ValueError, match="block_size"):
+        metrics.energy_distance(x, x, block_size=0)
+    # A traced bandwidth is accepted (no float() of a tracer).
+    assert np.isfinite(jax.jit(lambda h: metrics.mmd(x, x + 1.0, bandwidth=h))(1.0))
 
 
 def test_mmd_large_samples_in_bounded_memory():
@@ -103,3 +112,18 @@ def test_simple_metrics():
     expected = np.sqrt(np.mean(np.var(np.asarray(particles), axis=0, ddof=1)))
     np.testing.assert_allclose(metrics.spread(particles), expected, rtol=1e-5)
     np.testing.assert_allclose(metrics.spread(particles, jnp.zeros(50)), expected, rtol=1e-5)
+    # Weighted: the unbiased weighted variance, computed independently in float64.
+    log_weights = jnp.linspace(-3.0, 1.0, 50)
+    w = np.exp(np.asarray(log_weights, np.float64))
+    w /= w.sum()
+    x = np.asarray(particles, np.float64)
+    variance = w @ (x - w @ x) ** 2 / (1 - np.sum(w**2))
+    np.testing.assert_allclose(metrics.spread(particles, log_weights), np.sqrt(variance.mean()), rtol=1e-5)
+
+
+def test_median_bandwidth_ignores_duplicates():
+    resampled = jnp.repeat(jnp.array([[0.0], [1.0], [3.0]]), jnp.array([40, 2, 2]), axis=0)
+    bandwidth = float(metrics.median_bandwidth(resampled, resampled))
+    assert bandwidth > 0.5
+    assert np.isfinite(metrics.mmd(resampled, resampled + 0.1))
+    assert float(metrics.median_bandwidth(jnp.zeros((5, 2)), jnp.zeros((5, 2)))) == 1.0

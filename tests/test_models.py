@@ -67,6 +67,15 @@ def test_model_builders_reject_bad_input():
         models.lorenz63(steps_per_observation=0)
     with pytest.raises(ValueError, match="dim"):
         models.squared_observation(dim=0)
+    with pytest.raises(ValueError, match="noise"):
+        models.squared_observation(noise=-1.0)
+    with pytest.raises(ValueError, match="observation_scale"):
+        models.squared_observation(observation_scale=0.0)
+    model = models.lorenz63()
+    for bad in (np.diag([1.0, 0.0, 1.0]), -np.eye(3), np.array([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]])):
+        with pytest.raises(ValueError, match="observation_noise_cov"):
+            otf.run_filter(jax.random.key(0), model._replace(observation_noise_cov=bad), otf.enkf(),
+                           np.zeros((2, 3)), 10)
     eye = np.eye(2)
     with pytest.raises(ValueError, match="R"):
         models.linear_gaussian(eye, eye, eye, -eye, np.zeros(2), eye)

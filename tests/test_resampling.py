@@ -71,3 +71,11 @@ def test_unknown_scheme_is_rejected():
         otf.resample_indices(jax.random.key(0), jnp.zeros(4), "bogus")
     with pytest.raises(ValueError, match="resampling"):
         otf.sir(resampling="bogus")
+
+
+@pytest.mark.parametrize("scheme", ["systematic", "residual"])
+@pytest.mark.parametrize("num", [10, 1000])
+def test_uniform_weights_keep_every_particle(scheme, num):
+    """N w_i = 1 (0.99999994 after float32 rounding): each particle is kept exactly once."""
+    indices = otf.resample_indices(jax.random.key(0), jnp.zeros(num), scheme)
+    np.testing.assert_array_equal(np.sort(np.asarray(indices)), np.arange(num))

@@ -183,3 +183,85 @@ def test_random_rotation_is_haar_on_the_complement_of_ones(x64):
         values = blocks**power
         error = np.abs(values.mean(axis=0) - expected)
         np.testing.assert_array_less(error, 5 * values.std(axis=0) / np.sqrt(draws) + 1e-12)
+
+
+@pytest.mark.parametrize("num_particles", [4, 10, 11, 30])
+def test_square_root_enkf_exact_in_both_gram_branches(x64, num_particles):
+    """m = 10 observations: N <= m uses the N x N Gram matrix, N > m the m x m one."""
+    rng = np.random.default_rng(num_particles)
+    H = rng.normal(size=(10, 3))
+    R = np.diag(rng.uniform(0.5, 2.0, size=10))
+    model = otf.models.linear_gaussian(0.9 * np.eye(3), 0.1 * np.eye(3), H, R, np.zeros(3), np.eye(3))
+    particles = jnp.asarray(rng.normal(size=(num_particles, 3)))
+    y = jnp.asarray(rng.normal(size=10))
+    update = otf.enkf(perturbed=False)
+    posterior, _, _ = update.apply(jax.random.key(0), update.init(None, particles), particles, y, model)
+    mean, cov = sample_moments(particles)
+    expected_mean, expected_cov = kalman_update(mean, cov, H, R, np.asarray(y))
+    got_mean, got_cov = sample_moments(posterior)
+    np.testing.assert_allclose(got_mean, expected_mean, atol=1e-10)
+    np.testing.assert_allclose(got_cov, expected_cov, atol=1e-10)
+
+
+def test_simulation_based_gain_with_fewer_particles_than_observations():
+    """N = 12 <= m = 40: Cov(Y) is singular; the pseudo-inverse update matches float64 NumPy."""
+    rng = np.random.default_rng(0)
+    H = rng.normal(size=(40, 3))
+    model = otf.StateSpaceModel(
+        sample_initial=lambda key: jnp.zeros(3),
+        sample_transition=lambda key, x: x,
+        sample_observation=lambda key, x: jnp.asarray(H, x.dtype) @ x + 0.3 * jax.random.normal(key, (40,)),
+    )
+    particles = jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)
+    y = jnp.asarray(rng.normal(size=40), jnp.float32)
+    update = otf.enkf()
+    key = jax.random.key(1)
+    posterior, _, info = update.apply(key, update.init(None, particles), particles, y, model)
+    simulated = np.asarray(jax.vmap(model.sample_observation)(jax.random.split(jax.random.split(key)[0], 12), particles), np.float64)
+    x = np.asarray(particles, np.float64)
+    xa, ya = x - x.mean(0), simulated - simulated.mean(0)
+    gain = (xa.T @ ya / 11) @ np.linalg.pinv(ya.T @ ya / 11, rcond=1e-5)
+    expected = x + (np.asarray(y, np.float64) - simulated) @ gain.T
+    np.testing.assert_allclose(posterior, expected, rtol=2e-3, atol=2e-3)
+    assert info.innovation_condition > 1e6  # reported as (numerically) singular
+
+
+def test_collapsed_ensemble_with_deterministic_simulator_is_left_alone():
+    model = otf.StateSpaceModel(
+        sample_initial=lambda key: jnp.zeros(2),
+        sample_transition=lambda key, x: x,
+        sample_observation=lambda key, x: x**2,
+    )
+    particles = jnp.ones((20, 2))
+    update = otf.enkf()
+    posterior, _, _ = update.apply(jax.random.key(0), update.init(None, particles), particles, jnp.array([4.0, 0.0]), model)
+    np.testing.assert_array_equal(posterior, particles)
+
+
+def test_sir_jitter_revives_a_collapsed_ensemble():
+    """All the weight on one particle: the jitter falls back to the equally weighted covariance
+    (as DAPPER), so resampled copies are spread out instead of collapsing for good."""
+    model, particles, _, _ = one_step_problem(num_particles=200)
+    y = jnp.array([400.0, 400.0])  # far out: one particle takes all the mass
+    update = otf.sir(jitter=0.5)
+    out, _, info = update.apply(jax.random.key(0), update.init(None, particles), particles, y, model)
+    assert float(info.ess) < 1.0 + 1e-3
+    assert len(np.unique(np.asarray(out)[:, 0])) == 200
+    assert float(otf.metrics.spread(out)) > 0.05
+
+
+def test_sir_jitter_covariance_uses_the_weights():
+    """The regularisation noise has covariance (jitter * N^(-1/(n+4)))^2 C_w, C_w weighted."""
+    from ot_filter.updates.sir import _regularisation_noise
+
+    num = 200_000
+    particles = jax.random.normal(jax.random.key(0), (num, 2)) @ jnp.array([[1.0, 0.0], [0.6, 0.8]])
+    log_weights = -0.5 * jnp.sum((particles - jnp.array([1.0, -0.5])) ** 2, axis=1)  # non-uniform
+    noise = _regularisation_noise(jax.random.key(1), particles, log_weights, 2.0)
+    weights = np.exp(np.asarray(log_weights, np.float64))
+    weights /= weights.sum()
+    x = np.asarray(particles, np.float64)
+    anomalies = x - weights @ x
+    weighted = (anomalies.T * weights) @ anomalies / (1 - np.sum(weights**2))
+    expected = (2.0 * num ** (-1.0 / 6.0)) ** 2 * weighted
+    np.testing.assert_allclose(np.cov(np.asarray(noise, np.float64).T), expected, atol=5 * np.sqrt(2 / num) * np.abs(expected).max())

@@ -12,10 +12,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ot_filter._linalg import psd_sqrt
-from ot_filter.model import StateSpaceModel
+from ot_filter.model import StateSpaceModel, check_covariance
 
 Array = jax.Array
 
@@ -31,22 +30,6 @@ class LinearGaussianParameters(NamedTuple):
     initial_cov: Array
 
 
-def _check_covariance(name: str, matrix, size: int, positive_definite: bool) -> None:
-    matrix = np.asarray(matrix, dtype=np.float64)
-    if matrix.shape != (size, size):
-        raise ValueError(f"{name} must have shape ({size}, {size}), got {matrix.shape}")
-    if not np.all(np.isfinite(matrix)):
-        raise ValueError(f"{name} must be finite")
-    if not np.allclose(matrix, matrix.T, rtol=1e-6, atol=1e-10 * max(1.0, np.abs(matrix).max())):
-        raise ValueError(f"{name} must be symmetric")
-    smallest = np.linalg.eigvalsh(matrix).min()
-    scale = max(1.0, np.abs(matrix).max())
-    if positive_definite and smallest <= 0:
-        raise ValueError(f"{name} must be positive definite (smallest eigenvalue {smallest:.3g})")
-    if smallest < -1e-8 * scale:
-        raise ValueError(f"{name} must be positive semi-definite (smallest eigenvalue {smallest:.3g})")
-
-
 def linear_gaussian(A, Q, H, R, m0, P0) -> StateSpaceModel:
     """Builds the linear-Gaussian model; ``R`` must be positive definite, ``Q, P0`` PSD."""
     A, Q, H, R = (jnp.asarray(a) for a in (A, Q, H, R))
@@ -59,9 +42,9 @@ def linear_gaussian(A, Q, H, R, m0, P0) -> StateSpaceModel:
     m = H.shape[0]
     if m0.shape != (n,):
         raise ValueError(f"m0 must have shape ({n},), got {m0.shape}")
-    _check_covariance("Q", Q, n, positive_definite=False)
-    _check_covariance("R", R, m, positive_definite=True)
-    _check_covariance("P0", P0, n, positive_definite=False)
+    check_covariance("Q", Q, n, positive_definite=False)
+    check_covariance("R", R, m, positive_definite=True)
+    check_covariance("P0", P0, n, positive_definite=False)
 
     parameters = LinearGaussianParameters(A, Q, H, R, m0, P0)
     transition_sqrt, observation_sqrt, initial_sqrt = psd_sqrt(Q), psd_sqrt(R), psd_sqrt(P0)

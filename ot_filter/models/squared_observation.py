@@ -17,11 +17,12 @@ Coordinates are independent, so exact posteriors factorise into 1-D ones.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
+import numpy as np
 
 from ot_filter.model import StateSpaceModel
 from ot_filter.models._gaussian_observation import (
     check_nonnegative,
+    check_positive,
     with_gaussian_observation,
 )
 
@@ -47,7 +48,10 @@ def squared_observation(
     if not isinstance(dim, int) or dim < 1:
         raise ValueError(f"dim must be a positive int, got {dim!r}")
     check_nonnegative("alpha", alpha)
+    check_positive("noise", noise)
     scale = float(observation_scale)
+    if scale == 0.0 or not np.isfinite(scale):
+        raise ValueError(f"observation_scale must be finite and non-zero, got {observation_scale}")
     if process_noise_std is None:
         process_noise_std = 2.0 * float(noise)
     process_std = check_nonnegative("process_noise_std", process_noise_std)

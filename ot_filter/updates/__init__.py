@@ -3,7 +3,7 @@
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState
 from ot_filter.updates.enkf import EnKFInfo, enkf
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
-from ot_filter.updates.sir import SIRInfo, SIRState, effective_sample_size, sir
+from ot_filter.updates.sir import SIRInfo, SIRState, sir
 
 __all__ = [
     "BayesUpdate",
@@ -12,7 +12,6 @@ __all__ = [
     "SIRInfo",
     "SIRState",
     "UniformWeightsState",
-    "effective_sample_size",
     "enkf",
     "resample_indices",
     "sir",

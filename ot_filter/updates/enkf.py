@@ -29,7 +29,8 @@ Random rotation (``rotate=True``, DAPPER's ``rot=True``): after the update the p
 are multiplied by a random orthogonal N x N matrix that fixes the vector of ones (so the mean and
 covariance are unchanged). It spreads the analysis over all members and stops the symmetric
 square root from building up outliers; on the Lorenz-63 benchmark with N = 10 it lowers the RMSE
-from about 0.71 to 0.58. It costs O(N^3 + N^2 n): meant for small ensembles.
+from about 0.71 to 0.58. It draws (N - 1)^2 normals and costs O(N^2 n): meant for small ensembles
+(N <= 4096).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import floored_pinv_solve, weighted_mean_and_anomalies
+from ot_filter._linalg import mean_and_anomalies, truncated_pinv_solve
 from ot_filter.model import StateSpaceModel
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_log_weights
 
@@ -51,7 +52,11 @@ MAX_ROTATED_PARTICLES = 4096
 
 
 class EnKFInfo(NamedTuple):
-    innovation_condition: Array  # condition number of Cov(Y) (inf if singular, then regularised)
+    # Conditioning of the matrix the update inverts: simulation-based, max/min eigenvalue of
+    # Cov(Y) (inf if singular: the pseudo-inverse then drops the null directions); exact R, the
+    # squared ratio of the extreme Cholesky diagonal entries of Cov(h) + R (a cheap lower bound);
+    # square root, max/min eigenvalue of I + S^T S (whitened, always finite).
+    innovation_condition: Array
 
 
 def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -> BayesUpdate:
@@ -75,7 +80,7 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
     def apply(key: Array, state: UniformWeightsState, particles: Array, observation: Array,
               model: StateSpaceModel):
         update_key, rotation_key = jax.random.split(key)
-        mean, anomalies = weighted_mean_and_anomalies(particles)
+        mean, anomalies = mean_and_anomalies(particles)
         if inflation != 1.0:
             anomalies = inflation * anomalies
             particles = mean + anomalies
@@ -91,10 +96,10 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
         if rotate:
             if particles.shape[0] > MAX_ROTATED_PARTICLES:
                 raise ValueError(
-                    f"enkf(rotate=True) builds an N x N rotation (O(N^3)); num_particles must be "
+                    f"enkf(rotate=True) draws (N - 1)^2 normals per update; num_particles must be "
                     f"<= {MAX_ROTATED_PARTICLES}, got {particles.shape[0]}"
                 )
-            posterior_mean, posterior_anomalies = weighted_mean_and_anomalies(particles)
+            posterior_mean, posterior_anomalies = mean_and_anomalies(particles)
             particles = posterior_mean + _random_rotation(rotation_key, posterior_anomalies)
         return particles, state, EnKFInfo(condition)
 
@@ -110,7 +115,7 @@ def _perturbed_update(key, particles, anomalies, observation, model):
         noise_chol = jnp.linalg.cholesky(noise_cov)
         noise = jax.random.normal(key, predicted.shape, particles.dtype) @ noise_chol.T
         noise = noise - jnp.mean(noise, axis=0)  # centred perturbations: no sampling bias
-        _, predicted_anomalies = weighted_mean_and_anomalies(predicted)
+        _, predicted_anomalies = mean_and_anomalies(predicted)
         innovation_cov = predicted_anomalies.T @ predicted_anomalies / (num_particles - 1) + noise_cov
         cross_cov = anomalies.T @ predicted_anomalies / (num_particles - 1)  # [n, m]
         innovations = observation - predicted - noise  # [N, m]
@@ -119,15 +124,17 @@ def _perturbed_update(key, particles, anomalies, observation, model):
         diagonal = jnp.diag(chol)
         condition = (jnp.max(diagonal) / jnp.min(diagonal)) ** 2  # cheap lower bound
         return particles + (cross_cov @ solved).T, condition
-    # Simulation-based: Cov(Y) is estimated and may be singular (e.g. N <= m): floored eigh.
+    # Simulation-based: Cov(Y) is estimated and may be singular (e.g. N <= m): eigh.
     keys = jax.random.split(key, num_particles)
     simulated = jax.vmap(model.sample_observation)(keys, particles)
-    _, simulated_anomalies = weighted_mean_and_anomalies(simulated)
+    _, simulated_anomalies = mean_and_anomalies(simulated)
     innovation_cov = simulated_anomalies.T @ simulated_anomalies / (num_particles - 1)
     cross_cov = anomalies.T @ simulated_anomalies / (num_particles - 1)
     eps = jnp.finfo(particles.dtype).eps
-    solved, condition = floored_pinv_solve(
-        innovation_cov, (observation - simulated).T, relative_floor=observation.shape[0] * eps
+    # Truncated pseudo-inverse: a singular Cov(Y) (N <= m, or a collapsed ensemble with a
+    # deterministic simulator) updates only along the directions the ensemble spans.
+    solved, condition = truncated_pinv_solve(
+        innovation_cov, (observation - simulated).T, relative_cutoff=observation.shape[0] * eps
     )
     return particles + (cross_cov @ solved).T, condition
 
@@ -146,7 +153,7 @@ def _square_root_update(mean, anomalies, observation, model):
     m = observation.shape[0]
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
-    predicted_mean, predicted_anomalies = weighted_mean_and_anomalies(predicted)
+    predicted_mean, predicted_anomalies = mean_and_anomalies(predicted)
     # Whitening matrix L^{-1} of the model's constant R, formed once: the whitening is then a
     # matmul. (Triangular solves against the ensemble would become one batched LAPACK solve per
     # member under vmap, which is slower and deadlocked jaxlib's CPU thread pool for vmaps over
@@ -171,7 +178,8 @@ def _square_root_update(mean, anomalies, observation, model):
         projected = right.T @ (whitened.T @ anomalies)  # [m, n]
         posterior_anomalies = anomalies + whitened @ (right @ (shrink_over_s2[:, None] * projected))
     posterior_mean = mean + mean_weights @ anomalies / scale
-    smallest = jnp.where(num_particles - 1 < m, 1.0, 1.0 + jnp.min(s2))
+    # Rank of S is at most N - 1: with N - 1 < m some eigenvalues of I + S^T S are exactly 1.
+    smallest = 1.0 if num_particles - 1 < m else 1.0 + jnp.min(s2)
     return posterior_mean + posterior_anomalies, (1.0 + jnp.max(s2)) / smallest
 
 

@@ -2,7 +2,8 @@
 
 Each scheme gives offspring counts with E[count_i] = N w_i (tested). They differ in variance:
 multinomial (independent draws, the largest), stratified (one uniform per stratum [j/N, (j+1)/N)),
-systematic (one uniform shared by all strata; counts are floor or ceil of N w_i) and residual
+systematic (one uniform shared by all strata; counts are floor or ceil of N w_i in exact
+arithmetic) and residual
 (floor(N w_i) deterministic copies, the rest multinomial on the residual weights).
 
 All take log-weights, never exponentiate them unnormalised, and cost O(N log N) through one
@@ -63,13 +64,16 @@ def systematic(key: Array, log_weights: Array) -> Array:
 def residual(key: Array, log_weights: Array) -> Array:
     num = log_weights.shape[0]
     scaled = num * jnp.exp(log_weights - jax.nn.logsumexp(log_weights))
-    copies = jnp.floor(scaled).astype(jnp.int32)
+    # N w_i = 0.99999994 for uniform weights in float32: a relative nudge of a few ulps keeps
+    # the integer parts (and the scheme's low variance) that rounding would lose.
+    eps = jnp.finfo(scaled.dtype).eps
+    copies = jnp.floor(scaled * (1.0 + 8.0 * eps)).astype(jnp.int32)
     num_deterministic = jnp.sum(copies)
     # Slot j < num_deterministic goes to the particle whose copy range contains j.
     slots = jnp.arange(num)
     deterministic = _invert_cdf(jnp.cumsum(copies), slots)
     # The remaining slots are multinomial draws from the residual weights N w - floor(N w).
-    leftover = scaled - copies
+    leftover = jnp.maximum(scaled - copies, 0.0)
     log_leftover = jnp.where(leftover > 0, jnp.log(jnp.where(leftover > 0, leftover, 1.0)), -jnp.inf)
     # If nothing is left over (all N w_i integers) every slot is deterministic anyway.
     log_leftover = jnp.where(jnp.any(leftover > 0), log_leftover, jnp.zeros_like(log_leftover))

@@ -10,10 +10,12 @@ marginal likelihood ``log p(y_t | y_{1:t-1})`` (summed over t: the marginal log-
 Step 2 (resampling) when the effective sample size ESS = 1 / sum_i (w^i)^2 falls below
 ``ess_threshold * N`` (threshold 1.0: every step); otherwise the weights are carried.
 
-Regularisation (as DAPPER's ``PartFilt(reg=...)``): after resampling, add Gaussian jitter with
+Regularisation (DAPPER's ``PartFilt(reg=...)``): after resampling, add Gaussian jitter with
 covariance ``(jitter * N^(-1/(n+4)))^2 * C`` where C is the (unbiased) weighted covariance of the
-ensemble before resampling and ``N^(-1/(n+4))`` is Scott's kernel-bandwidth rule. It keeps
-resampled duplicates apart when the dynamics are deterministic.
+ensemble before resampling (the equally weighted one if a single particle holds all the mass)
+and ``N^(-1/(n+4))`` is Scott's kernel-bandwidth rule. It keeps resampled duplicates apart when
+the dynamics are deterministic. Unlike DAPPER's default (``nuj=True``), every particle is
+jittered, not only the duplicated ones.
 
 Degenerate weights (all log-likelihoods -inf or NaN, or +inf) cannot be normalised: the update
 is then skipped (the prior weights are kept), ``info.degenerate`` is set and nothing becomes NaN.
@@ -26,14 +28,15 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import psd_sqrt
+from ot_filter._linalg import psd_sqrt, weighted_covariance
+from ot_filter.metrics import ess as effective_sample_size
 from ot_filter.model import StateSpaceModel
 from ot_filter.updates.base import BayesUpdate, uniform_log_weights
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES
 
 Array = jax.Array
 
-__all__ = ["SIRState", "SIRInfo", "sir", "effective_sample_size"]
+__all__ = ["SIRState", "SIRInfo", "sir"]
 
 
 class SIRState(NamedTuple):
@@ -45,11 +48,6 @@ class SIRInfo(NamedTuple):
     ess: Array  # scalar: effective sample size after reweighting, before resampling
     resampled: Array  # bool scalar
     degenerate: Array  # bool scalar: weights could not be normalised, update skipped
-
-
-def effective_sample_size(log_weights: Array) -> Array:
-    """ESS = (sum w)^2 / sum w^2, computed from log-weights of any normalisation."""
-    return jnp.exp(2 * jax.nn.logsumexp(log_weights) - jax.nn.logsumexp(2 * log_weights))
 
 
 def sir(
@@ -118,12 +116,7 @@ def sir(
 def _regularisation_noise(key, particles, log_weights, jitter):
     """Gaussian noise ~ N(0, (jitter * N^(-1/(n+4)))^2 C_w), C_w the weighted covariance."""
     num_particles, dim = particles.shape
-    weights = jnp.exp(log_weights)
-    anomalies = particles - weights @ particles
-    sum_squared_weights = jnp.sum(weights**2)
-    # Unbiasing factor 1 / (1 - sum w^2); with all mass on one particle C is 0 anyway.
-    unbias = jnp.where(sum_squared_weights < 1.0, 1.0 / (1.0 - sum_squared_weights), 0.0)
-    covariance = unbias * (anomalies.T * weights) @ anomalies
+    covariance = weighted_covariance(particles, log_weights)
     bandwidth = num_particles ** (-1.0 / (dim + 4))
     standard = jax.random.normal(key, particles.shape, particles.dtype)
     return (jitter * bandwidth) * standard @ psd_sqrt(covariance).T
