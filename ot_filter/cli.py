@@ -23,6 +23,7 @@ def _write_atomically(path: str, text: str) -> None:
     handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
     with os.fdopen(handle, "w") as stream:
         stream.write(text)
+    os.chmod(temporary, 0o644)  # mkstemp makes it private; results are meant to be shared
     os.replace(temporary, path)
 
 
