@@ -1,7 +1,7 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``); ``run_filter`` composes them into a
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``ot``); ``run_filter`` composes them into a
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference.
 """
 
@@ -12,9 +12,13 @@ from ot_filter.model import StateSpaceModel, simulate
 from ot_filter.updates import (
     BayesUpdate,
     EnKFInfo,
+    OTInfo,
+    OTState,
+    OTUpdate,
     SIRInfo,
     SIRState,
     enkf,
+    ot,
     resample_indices,
     sir,
 )
@@ -26,6 +30,9 @@ __all__ = [
     "EnKFInfo",
     "FilterResult",
     "KalmanResult",
+    "OTInfo",
+    "OTState",
+    "OTUpdate",
     "SIRInfo",
     "SIRState",
     "StateSpaceModel",
@@ -33,6 +40,7 @@ __all__ = [
     "kalman_filter",
     "metrics",
     "models",
+    "ot",
     "resample_indices",
     "run_filter",
     "simulate",

@@ -73,7 +73,7 @@ def run_filter(
     Args:
       key: PRNG key.
       model: the state-space model (its simulator propagates the particles).
-      update: a ``BayesUpdate`` (``ot_filter.sir(...)``, ``ot_filter.enkf(...)``, ...).
+      update: a ``BayesUpdate`` (``ot_filter.sir(...)``, ``ot_filter.enkf(...)``, ``ot_filter.ot(...)``).
       observations: ``[T, m]`` observations y_1..y_T (rows with NaN are treated as missing).
       num_particles: N >= 2 (static).
       save_every: keep the particles of every k-th step (steps k-1, 2k-1, ...); 1 keeps all,
@@ -84,7 +84,8 @@ def run_filter(
     Returns:
       A ``FilterResult``.
     """
-    if not isinstance(update, BayesUpdate):
+    if not (isinstance(update, tuple) and callable(getattr(update, "init", None))
+            and callable(getattr(update, "apply", None))):
         raise TypeError(
             f"update must be a BayesUpdate (e.g. ot_filter.sir()), got {type(update).__name__}"
         )
@@ -127,7 +128,7 @@ def _run_filter(key, model, update, observations, num_particles, save_every, ini
     else:
         particles = jnp.asarray(initial_particles)
     observations = observations.astype(particles.dtype)
-    state = update.init(state_key, particles)
+    state = update.init(state_key, particles, model)
 
     def step(carry, inputs):
         particles, state = carry

@@ -2,17 +2,22 @@
 
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState
 from ot_filter.updates.enkf import EnKFInfo, enkf
+from ot_filter.updates.ot import OTInfo, OTState, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
 from ot_filter.updates.sir import SIRInfo, SIRState, sir
 
 __all__ = [
     "BayesUpdate",
     "EnKFInfo",
+    "OTInfo",
+    "OTState",
+    "OTUpdate",
     "RESAMPLING_SCHEMES",
     "SIRInfo",
     "SIRState",
     "UniformWeightsState",
     "enkf",
+    "ot",
     "resample_indices",
     "sir",
 ]

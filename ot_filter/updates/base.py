@@ -1,13 +1,17 @@
 """The interface every Bayes update implements (optax-style: a NamedTuple of pure functions).
 
     update = ot_filter.sir(...)                        # static configuration at build time
-    state = update.init(key, particles)                # particles[N, n]
+    state = update.init(key, particles, model)         # particles[N, n]
     particles, state, info = update.apply(key, state, particles, observation, model)
 
 ``apply`` maps prior particles (after propagation) and an observation ``y[m]`` to posterior
 particles. Every state carries ``log_weights[N]``, normalised (logsumexp = 0): the posterior is
 the weighted empirical measure ``sum_i exp(log_weights_i) delta_{X^i}`` (uniform except for SIR
 between resampling steps). ``info`` holds per-step diagnostics; ``run_filter`` stacks them.
+``init`` is given the model because some states depend on it (the OT update's networks need the
+observation dimension); SIR and EnKF ignore it. An update may offer more than ``init``/``apply``
+(``ot()`` returns an ``OTUpdate`` that also exposes its trained map); ``run_filter`` accepts any
+NamedTuple with these two.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ Array = jax.Array
 
 
 class BayesUpdate(NamedTuple):
-    """A Bayes update: ``init(key, particles) -> state`` and
+    """A Bayes update: ``init(key, particles, model=None) -> state`` and
     ``apply(key, state, particles, observation, model) -> (particles, state, info)``."""
 
     init: Callable[[Array, Array], Any]

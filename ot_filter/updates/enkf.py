@@ -73,8 +73,8 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
         raise ValueError(f"inflation must be >= 1, got {inflation}")
     perturbed, rotate = bool(perturbed), bool(rotate)
 
-    def init(key: Array, particles: Array) -> UniformWeightsState:
-        del key
+    def init(key: Array, particles: Array, model: StateSpaceModel | None = None) -> UniformWeightsState:
+        del key, model
         return UniformWeightsState(uniform_log_weights(particles))
 
     def apply(key: Array, state: UniformWeightsState, particles: Array, observation: Array,

@@ -72,8 +72,8 @@ def sir(
         raise ValueError(f"jitter must be >= 0, got {jitter}")
     resample_scheme = RESAMPLING_SCHEMES[resampling]
 
-    def init(key: Array, particles: Array) -> SIRState:
-        del key
+    def init(key: Array, particles: Array, model: StateSpaceModel | None = None) -> SIRState:
+        del key, model
         return SIRState(uniform_log_weights(particles))
 
     def resample(key, particles, log_weights):
