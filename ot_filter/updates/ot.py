@@ -121,6 +121,7 @@ def ot(
     divergence_threshold: float = 10.0,
     concavity_points: int = 256,
     concavity_step: float = 0.1,
+    observation_smoothing: float = 0.0,
 ) -> OTUpdate:
     """Builds the OT Bayes update.
 
@@ -214,11 +215,16 @@ def ot(
         xs = (particles - scaling.x_mean) / scaling.x_scale
         ys = (simulated - scaling.y_mean) / scaling.y_scale
 
+        bandwidth = observation_smoothing * num ** (-1.0 / (ys.shape[1] + 4))
+
         def sample_batch(batch_key):
-            pair_key, copy_key = jax.random.split(batch_key)
+            pair_key, copy_key, jitter_key = jax.random.split(batch_key, 3)
             pairs = jax.random.randint(pair_key, (batch_size,), 0, num)
             copies = jax.random.randint(copy_key, (batch_size,), 0, num)
-            return Batch(xs[pairs], ys[pairs], xs[copies], ys[copies])
+            y_pairs = ys[pairs]
+            if observation_smoothing:
+                y_pairs = y_pairs + bandwidth * jax.random.normal(jitter_key, y_pairs.shape, ys.dtype)
+            return Batch(xs[pairs], y_pairs, xs[copies], ys[copies])
 
         training = state.training
         if not warm_start:

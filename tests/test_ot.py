@@ -1,0 +1,174 @@
+"""The OT Bayes update: interface, diagnostics, fallback, jit/vmap behaviour and accuracy."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import ot_filter as otf
+from ot_filter.transport import c_concavity_min_eigenvalue
+
+STATIC = otf.models.squared_observation(dim=2, noise=0.4, observation_scale=0.5, static=True)
+
+
+def prior_particles(num=200, seed=0, dim=2):
+    return jax.random.normal(jax.random.key(seed), (num, dim))
+
+
+def run_once(update, particles, observation, model=STATIC, seed=1):
+    init_key, apply_key = jax.random.split(jax.random.key(seed))
+    state = update.init(init_key, particles, model)
+    return update.apply(apply_key, state, particles, observation, model)
+
+
+def test_c_concavity_check_is_exact_for_quadratic_potentials():
+    # f(x, y) = 0.5 x^T M x + y.x: 0.5|x|^2 - f has Hessian I - M, whatever the step.
+    M = jnp.array([[1.5, 0.3], [0.3, 0.2]])
+    expected = np.linalg.eigvalsh(np.eye(2) - np.asarray(M)).min()
+
+    def potential(x, y):
+        return 0.5 * x @ M @ x + y @ x
+
+    points = jax.random.normal(jax.random.key(0), (5, 2))
+    for step in (0.01, 0.5):
+        values = c_concavity_min_eigenvalue(potential, points, points + 1.0, step)
+        np.testing.assert_allclose(values, expected, rtol=1e-4)
+
+
+def test_transport_reproduces_apply_and_is_conditional():
+    update = otf.ot(num_iterations=300)
+    particles = prior_particles()
+    y = jnp.array([1.0, 0.5])
+    posterior, state, info = run_once(update, particles, y)
+    assert not bool(info.diverged)
+    np.testing.assert_allclose(update.transport(state, particles, y), posterior, atol=1e-5)
+    # Several observations at once, without retraining: [K, m] -> [K, N, n].
+    ys = jnp.array([[1.0, 0.5], [2.0, 0.1], [0.2, 3.0]])
+    moved = update.transport(state, particles, ys)
+    assert moved.shape == (3, 200, 2)
+    np.testing.assert_allclose(moved[0], posterior, atol=1e-5)
+    assert not np.allclose(moved[1], moved[2])
+    assert info.loss.shape == (300,) and np.all(np.isfinite(info.loss))
+    assert int(state.num_updates) == 1
+
+
+def test_enkf_layer_untrained_map_is_the_perturbed_enkf_update():
+    # T's last layer starts at zero, so before training T(x, y) = x_e = x + K (y - Y^i): the
+    # perturbed-observation EnKF with the gain of all particles.
+    update = otf.ot(num_iterations=1, enkf_layer=True, transport_optimizer=optax.sgd(0.0))
+    particles = prior_particles(num=500)
+    y = jnp.array([1.0, 0.5])
+    posterior, state, _ = run_once(update, particles, y)
+    simulated = state.simulated_observations
+    x_anom = particles - particles.mean(0)
+    y_anom = simulated - simulated.mean(0)
+    gain = np.linalg.solve(np.asarray(y_anom.T @ y_anom), np.asarray(y_anom.T @ x_anom)).T
+    expected = particles + (y - simulated) @ gain.T
+    np.testing.assert_allclose(posterior, expected, atol=2e-3)
+
+
+@pytest.mark.parametrize("learning_rate", [1e3, 1e30])
+def test_divergence_is_detected_and_falls_back_to_enkf(learning_rate):
+    # A wildly large f step makes J explode (1e3) or overflow to NaN (1e30).
+    update = otf.ot(num_iterations=50, potential_optimizer=optax.sgd(learning_rate))
+    particles = prior_particles()
+    y = jnp.array([1.0, 0.5])
+    key = jax.random.key(3)
+    state = update.init(jax.random.key(0), particles, STATIC)
+    posterior, new_state, info = update.apply(key, state, particles, y, STATIC)
+    assert bool(info.diverged)
+    fallback_key = jax.random.split(key, 4)[2]
+    enkf = otf.enkf()
+    expected, _, _ = enkf.apply(fallback_key, enkf.init(None, particles), particles, y, STATIC)
+    np.testing.assert_allclose(posterior, expected, atol=1e-6)
+    # The diverged networks are not carried forward.
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(new_state.training))
+    # A healthy training is not flagged.
+    _, _, healthy = run_once(otf.ot(num_iterations=50), particles, y)
+    assert not bool(healthy.diverged)
+
+
+def test_jit_matches_eager_and_does_not_retrace():
+    update = otf.ot(num_iterations=5, inner_steps=2, concavity_points=8)
+    particles = prior_particles(num=64)
+    traces = []
+
+    def step(key, observation):
+        traces.append(1)
+        state = update.init(key, particles, STATIC)
+        return update.apply(key, state, particles, observation, STATIC)[0]
+
+    jitted = jax.jit(step)
+    a = jitted(jax.random.key(0), jnp.array([1.0, 0.5]))
+    jitted(jax.random.key(1), jnp.array([2.0, 0.1]))
+    assert len(traces) == 1
+    with jax.disable_jit():
+        b = step(jax.random.key(0), jnp.array([1.0, 0.5]))
+    np.testing.assert_allclose(a, b, atol=1e-4)
+
+
+def test_vmap_over_seeds_matches_single_runs():
+    update = otf.ot(num_iterations=20, concavity_points=0)
+    particles = prior_particles(num=100)
+    y = jnp.array([1.0, 0.5])
+
+    def one(key):
+        state = update.init(key, particles, STATIC)
+        return update.apply(key, state, particles, y, STATIC)[0]
+
+    keys = jax.random.split(jax.random.key(0), 3)
+    batched = jax.jit(jax.vmap(one))(keys)
+    single = jax.jit(one)
+    for k in range(3):
+        np.testing.assert_allclose(batched[k], single(keys[k]), atol=1e-4)
+
+
+def test_warm_start_continues_training():
+    update = otf.ot(num_iterations=40, concavity_points=0)
+    particles = prior_particles()
+    y = jnp.array([1.0, 0.5])
+    state = update.init(jax.random.key(0), particles, STATIC)
+    _, state1, _ = update.apply(jax.random.key(1), state, particles, y, STATIC)
+    _, state2, _ = update.apply(jax.random.key(2), state1, particles, y, STATIC)
+    count1 = state1.training.transport_opt_state[0].count
+    count2 = state2.training.transport_opt_state[0].count
+    assert int(count1) == 400 and int(count2) == 800  # Adam step counts: 40 x 10 inner steps each
+    cold = otf.ot(num_iterations=40, concavity_points=0, warm_start=False)
+    _, cold_state, _ = cold.apply(jax.random.key(2), state1, particles, y, STATIC)
+    assert int(cold_state.training.transport_opt_state[0].count) == 400
+
+
+def test_run_filter_with_ot_update():
+    model = otf.models.squared_observation(dim=2)
+    _, observations = otf.simulate(jax.random.key(0), model, 4)
+    update = otf.ot(num_iterations=30, concavity_points=16)
+    result = otf.run_filter(jax.random.key(1), model, update, observations, num_particles=64)
+    assert result.mean.shape == (4, 2) and np.all(np.isfinite(result.mean))
+    assert result.info.loss.shape == (4, 30)
+    assert int(result.final_state.num_updates) == 4
+    assert not np.any(result.info.diverged)
+
+
+def test_bad_configuration_and_input_raise_clear_errors():
+    with pytest.raises(ValueError, match="num_iterations"):
+        otf.ot(num_iterations=0)
+    with pytest.raises(ValueError, match="batch_size"):
+        otf.ot(batch_size=-1)
+    with pytest.raises(ValueError, match="activation"):
+        otf.ot(activation="sigmoidal")
+    with pytest.raises(TypeError, match="potential_optimizer"):
+        otf.ot(potential_optimizer="adam")
+    with pytest.raises(ValueError, match="num_blocks"):
+        otf.ot(num_blocks=-1)
+    update = otf.ot(num_iterations=2)
+    particles = prior_particles(num=10)
+    with pytest.raises(ValueError, match="needs the model"):
+        update.init(jax.random.key(0), particles)
+    state = update.init(jax.random.key(0), particles, STATIC)
+    with pytest.raises(ValueError, match="particles must have shape"):
+        update.transport(state, particles[:, :1], jnp.ones(2))
+    with pytest.raises(ValueError, match="observation must have shape"):
+        update.transport(state, particles, jnp.ones(3))
+    with pytest.raises(ValueError, match="simulated observations"):
+        update.transport(state, particles[:5], jnp.ones(2))
