@@ -5,7 +5,7 @@ returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``ot``); ``run_filter
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference.
 """
 
-from ot_filter import metrics, models
+from ot_filter import metrics, models, reference
 from ot_filter.filtering import FilterResult, run_filter
 from ot_filter.kalman import KalmanResult, kalman_filter
 from ot_filter.model import StateSpaceModel, simulate
@@ -41,6 +41,7 @@ __all__ = [
     "metrics",
     "models",
     "ot",
+    "reference",
     "resample_indices",
     "run_filter",
     "simulate",

@@ -22,10 +22,19 @@ filter never carries garbage forward. Divergence without NaN is the common failu
 saddle point (f's scale grows and J climbs long before anything overflows), which is why the loss
 level is tested, not only finiteness.
 
-Defaults (measured on the chapter's static example, see benchmarks/static_example.py): ReLU,
-width 32, one residual block, mini-batch 128, 10 T steps per f step, Adam(1e-3) on T and
-AdamW(1e-4, weight decay 1) on f, 10,000 outer iterations. The authors' 1e-3 for f diverges
-after 2,000-4,000 iterations; a slower, weight-decayed f is stable beyond 15,000.
+Small particle counts: trained on the N pairs alone, the networks resolve individual pairs and
+the map learns the posterior of an under-smoothed prior (at N = 100 the mode masses of the static
+example drift to 0.6-0.9). By default each mini-batch is therefore drawn from a kernel-smoothed
+prior -- X <- sqrt(1 - h^2) X + h eps in standardised units, Silverman's bandwidth h, which keeps
+the mean and covariance -- with observations simulated afresh at the jittered states. The map is
+applied to the original particles. On the static example this halves the W1 error at N = 100 and
+does not hurt N = 1000 (benchmarks/static_example.py; also checked on a bimodal prior).
+
+Defaults (measured on the chapter's static example): ReLU, width 32, one residual block,
+mini-batch 128, 10 T steps per f step, Adam(1e-3) on T and AdamW(1e-4, weight decay 1) on f,
+10,000 outer iterations, smoothing factor 1. The authors' 1e-3 for f diverges after 2,000-4,000
+iterations (J climbs, f's scale grows, the map collapses onto one mode); a slower, weight-decayed
+f is stable beyond 20,000.
 """
 
 from __future__ import annotations
@@ -57,6 +66,8 @@ __all__ = ["OTInfo", "OTState", "OTUpdate", "Standardisation", "ot"]
 
 # Transported particles spreading more than this many prior standard deviations mean divergence.
 MAX_POSTERIOR_SPREAD = 10.0
+# Cap of the smoothing bandwidth (standardised units): the jittered prior keeps 19% of the spread.
+MAX_SMOOTHING_BANDWIDTH = 0.9
 
 
 class Standardisation(NamedTuple):
@@ -121,7 +132,8 @@ def ot(
     divergence_threshold: float = 10.0,
     concavity_points: int = 256,
     concavity_step: float = 0.1,
-    observation_smoothing: float = 0.0,
+    prior_smoothing: float = 1.0,
+    fresh_observations: bool = True,
 ) -> OTUpdate:
     """Builds the OT Bayes update.
 
@@ -139,6 +151,11 @@ def ot(
       divergence_threshold: |smoothed J| above this times n counts as divergence.
       concavity_points: particles at which the c-concavity check runs (0: skipped).
       concavity_step: difference step of that check (standardised units).
+      prior_smoothing: c in the kernel bandwidth h = c (4 / (n + 2))^(1/(n+4)) N^(-1/(n+4))
+        (Silverman's rule, standardised units) of the smoothed prior the map is trained on
+        (0: train on the particles themselves); h is capped at 0.9 (shrinkage sqrt(1 - h^2)).
+      fresh_observations: draw each mini-batch's observations afresh from
+        ``model.sample_observation`` (else reuse the Y^i simulated once per update).
     """
     _check_positive_int("num_iterations", num_iterations)
     _check_positive_int("batch_size", batch_size)
@@ -158,6 +175,10 @@ def ot(
         raise ValueError(f"concavity_points must be an int >= 0, got {concavity_points!r}")
     if not concavity_step > 0:
         raise ValueError(f"concavity_step must be > 0, got {concavity_step}")
+    if not 0 <= prior_smoothing < float("inf"):
+        raise ValueError(f"prior_smoothing must be finite and >= 0, got {prior_smoothing}")
+    if prior_smoothing and not fresh_observations:
+        raise ValueError("prior_smoothing needs fresh_observations=True (observations of the jittered states)")
     enkf_layer, warm_start = bool(enkf_layer), bool(warm_start)
     if potential_optimizer is None:
         potential_optimizer = optax.adamw(1e-4, weight_decay=1.0)
@@ -215,16 +236,33 @@ def ot(
         xs = (particles - scaling.x_mean) / scaling.x_scale
         ys = (simulated - scaling.y_mean) / scaling.y_scale
 
-        bandwidth = observation_smoothing * num ** (-1.0 / (ys.shape[1] + 4))
+        # Smoothed bootstrap: train on a kernel-smoothed prior (Silverman's bandwidth times c, in
+        # standardised units, shrunk by sqrt(1 - h^2) so the mean and covariance are kept) with
+        # observations drawn afresh at the jittered states, so that neither network can memorise
+        # the N pairs. The trained map is applied to the original particles.
+        silverman = (4.0 / (n + 2)) ** (1.0 / (n + 4)) * num ** (-1.0 / (n + 4))
+        bandwidth = min(prior_smoothing * silverman, MAX_SMOOTHING_BANDWIDTH)
+        shrink = (1.0 - bandwidth**2) ** 0.5
+
+        def simulate_standardised(sample_key, x_standard):
+            x = x_standard * scaling.x_scale + scaling.x_mean
+            y = jax.vmap(model.sample_observation)(jax.random.split(sample_key, x.shape[0]), x)
+            return (y - scaling.y_mean) / scaling.y_scale
 
         def sample_batch(batch_key):
-            pair_key, copy_key, jitter_key = jax.random.split(batch_key, 3)
+            pair_key, copy_key, jitter_key, copy_jitter_key, y_key, ybar_key = jax.random.split(batch_key, 6)
             pairs = jax.random.randint(pair_key, (batch_size,), 0, num)
             copies = jax.random.randint(copy_key, (batch_size,), 0, num)
-            y_pairs = ys[pairs]
-            if observation_smoothing:
-                y_pairs = y_pairs + bandwidth * jax.random.normal(jitter_key, y_pairs.shape, ys.dtype)
-            return Batch(xs[pairs], y_pairs, xs[copies], ys[copies])
+            x, xbar = xs[pairs], xs[copies]
+            if prior_smoothing:
+                x = shrink * x + bandwidth * jax.random.normal(jitter_key, x.shape, x.dtype)
+                xbar = shrink * xbar + bandwidth * jax.random.normal(copy_jitter_key, xbar.shape, x.dtype)
+            if fresh_observations:
+                y = simulate_standardised(y_key, x)
+                ybar = simulate_standardised(ybar_key, xbar) if enkf_layer else ys[copies]
+            else:
+                y, ybar = ys[pairs], ys[copies]
+            return Batch(x, y, xbar, ybar)
 
         training = state.training
         if not warm_start:
