@@ -218,10 +218,13 @@ def plot_static_example(result: dict, out_dir: str, tag: str = "") -> list[str]:
         samples = arrays[f"{name}_posterior"][0][:, 0]
         ax.hist(samples, bins=60, range=(-3, 3), density=True, alpha=0.6, label=f"{name.upper()} particles")
         ax.plot(arrays["grid"], arrays["density"], "k", lw=1.2, label="exact posterior")
-        ax.set(xlim=(-3, 3), xlabel="$x_1$", title=f"{name.upper()}: W1 = {summary[name]['w1']['mean']:.3f}")
+        title = f"{name.upper()}: W1 {summary[name]['w1']['mean']:.3f}"
+        if summary["num_seeds"] > 1:
+            title += f" (mean of {summary['num_seeds']} runs)"
+        ax.set(xlim=(-3, 3), xlabel="$x_1$", title=title)
         ax.legend(fontsize=8)
     axes[0, 0].set_ylabel("density")
-    fig.suptitle(f"Posterior of $x_1$ given y = {summary['observation']} ({label})")
+    fig.suptitle(f"Posterior of $x_1$ given y = {summary['observation']} ({label}; particles of the first run)")
     paths.append(_save(fig, out_dir, f"posterior_{tag}.png"))
     return paths
 
