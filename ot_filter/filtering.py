@@ -87,7 +87,8 @@ def run_filter(
     if not (isinstance(update, tuple) and callable(getattr(update, "init", None))
             and callable(getattr(update, "apply", None))):
         raise TypeError(
-            f"update must be a BayesUpdate (e.g. ot_filter.sir()), got {type(update).__name__}"
+            f"update must be a BayesUpdate or another NamedTuple with init and apply (e.g. "
+            f"ot_filter.sir()), got {type(update).__name__}"
         )
     if isinstance(num_particles, bool) or not isinstance(num_particles, (int, np.integer)):
         raise TypeError(f"num_particles must be an int, got {type(num_particles).__name__}")

@@ -261,8 +261,8 @@ def wasserstein_1d(samples: Array, grid: Array, cdf: Array, weights: Array | Non
     samples = jnp.asarray(samples)
     if samples.ndim != 1:
         raise ValueError(f"samples must be 1-D [N], got shape {samples.shape}")
-    if jnp.ndim(grid) != 1 or jnp.shape(grid) != jnp.shape(cdf):
-        raise ValueError(f"grid and cdf must be 1-D of equal length, got {jnp.shape(grid)}, {jnp.shape(cdf)}")
+    if jnp.ndim(grid) != 1 or jnp.shape(grid) != jnp.shape(cdf) or jnp.shape(grid)[0] < 2:
+        raise ValueError(f"grid and cdf must be 1-D of equal length >= 2, got {jnp.shape(grid)}, {jnp.shape(cdf)}")
     num = samples.shape[0]
     if weights is None:
         weights = jnp.full((num,), 1.0 / num, samples.dtype)

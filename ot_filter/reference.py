@@ -49,6 +49,8 @@ def squared_observation_posterior(observation: float, noise: float, scale: float
                                   width: float = 8.0, num_points: int = 20_001) -> GridDensity:
     """Posterior of X ~ N(prior_mean, prior_std^2) given y = scale X^2 + noise W, on a grid of
     ``prior_mean +- width * prior_std`` (the static example: scale 0.5, N(0, 1))."""
+    if not (noise > 0 and prior_std > 0):
+        raise ValueError(f"noise and prior_std must be > 0, got {noise}, {prior_std}")
 
     def log_density(x):
         return -0.5 * ((x - prior_mean) / prior_std) ** 2 - 0.5 * ((observation - scale * x * x) / noise) ** 2

@@ -82,8 +82,8 @@ def run_static_example(
         prior_key, update_key, check_key, floor_key = jax.random.split(seed_key, 4)
         prior = jax.vmap(model.sample_initial)(jax.random.split(prior_key, num_particles))
         out = {"prior": prior, "floor_w1": coordinate_w1(exact_samples(floor_key))}
-        for name, update in updates.items():
-            init_key, apply_key = jax.random.split(jax.random.fold_in(update_key, len(name)))
+        for index, (name, update) in enumerate(updates.items()):
+            init_key, apply_key = jax.random.split(jax.random.fold_in(update_key, index))
             state = update.init(init_key, prior, model)
             posterior, state, info = update.apply(apply_key, state, prior, y, model)
             entry = {

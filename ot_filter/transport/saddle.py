@@ -8,7 +8,8 @@ With (X^i, Y^i) ~ P_XY and Xbar an independent copy of X, the empirical objectiv
 
 solved as max over f, min over T. Each outer iteration draws a fresh mini-batch: indices i for
 the joint pairs and, independently, indices j for Xbar (the independent coupling P_X (x) P_Y),
-takes ``inner_steps`` optimiser steps on T with f fixed, then one ascent step on f (optax
+takes ``inner_steps`` optimiser steps on T with f fixed (on that same mini-batch, as in the
+authors' code), then one ascent step on f (optax
 minimises, so it is given the negated gradient). The whole loop is one ``lax.fori_loop`` whose
 carry is plain pytrees (network parameters and optimiser states): training can be vmapped over
 seeds or simulations, warm-started from a previous result, and its trip count may be traced.
@@ -61,9 +62,9 @@ class TrainingState(NamedTuple):
 
 
 class TrainingTrace(NamedTuple):
-    loss: Array  # [record_length] J on each outer iteration's mini-batch (NaN if not run)
+    loss: Array  # [record_length] J on each outer iteration's mini-batch (+inf: not run or not finite)
     smoothed_loss: Array  # scalar: exponential moving average of J at the end
-    finite: Array  # bool scalar: every J and the final parameters are finite
+    finite: Array  # bool scalar: every J, the final parameters and optimiser states are finite
 
 
 class Batch(NamedTuple):
@@ -166,9 +167,10 @@ def train_saddle(
         return state, loss, smoothed, finite & jnp.isfinite(value)
 
     dtype = jax.tree.leaves(state.params)[0].dtype
-    carry = (state, jnp.full((record_length,), jnp.nan, dtype), jnp.zeros((), dtype), jnp.array(True))
+    carry = (state, jnp.full((record_length,), jnp.inf, dtype), jnp.zeros((), dtype), jnp.array(True))
     state, loss, smoothed, finite = jax.lax.fori_loop(0, num_iterations, outer, carry)
-    params_finite = jnp.all(
-        jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(state.params)])
-    )
-    return state, TrainingTrace(loss, smoothed, finite & params_finite)
+    # Parameters and optimiser states (an overflowing Adam moment would poison a warm start).
+    leaves = [leaf for leaf in jax.tree.leaves(state) if jnp.issubdtype(leaf.dtype, jnp.inexact)]
+    state_finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in leaves]))
+    loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
+    return state, TrainingTrace(loss, smoothed, finite & state_finite)

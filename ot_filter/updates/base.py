@@ -28,7 +28,7 @@ class BayesUpdate(NamedTuple):
     """A Bayes update: ``init(key, particles, model=None) -> state`` and
     ``apply(key, state, particles, observation, model) -> (particles, state, info)``."""
 
-    init: Callable[[Array, Array], Any]
+    init: Callable[..., Any]  # (key, particles, model=None) -> state
     apply: Callable[..., tuple[Array, Any, Any]]
 
 

@@ -66,8 +66,11 @@ __all__ = ["OTInfo", "OTState", "OTUpdate", "Standardisation", "ot"]
 
 # Transported particles spreading more than this many prior standard deviations mean divergence.
 MAX_POSTERIOR_SPREAD = 10.0
-# Cap of the smoothing bandwidth (standardised units): the jittered prior keeps 19% of the spread.
+# Cap of the smoothing bandwidth (standardised units): the particles then keep 19% of the
+# variance (sqrt(1 - 0.81)^2) and the jitter supplies the rest.
 MAX_SMOOTHING_BANDWIDTH = 0.9
+# Ridge on the particles' correlation matrix before its Cholesky factor (degenerate ensembles).
+CORRELATION_RIDGE = 1e-6
 
 
 class Standardisation(NamedTuple):
@@ -84,6 +87,7 @@ class OTState(NamedTuple):
     gain: Array  # [n, m] EnKF-layer gain from all particles (standardised); zeros without it
     simulated_observations: Array  # [N, m] Y^i ~ h(. | X^i) of the last update
     num_updates: Array  # int scalar: updates done so far
+    diverged: Array  # bool: the last training diverged; the networks were re-initialised
 
 
 class OTInfo(NamedTuple):
@@ -91,7 +95,8 @@ class OTInfo(NamedTuple):
     final_loss: Array  # smoothed J at the end of training
     diverged: Array  # bool: training diverged; the EnKF update was used instead
     min_hessian_eigenvalue: Array  # smallest eigenvalue of Hess_x(0.5|x|^2 - f) at checked pairs
-    concavity_violation: Array  # fraction of checked pairs where that eigenvalue is < 0
+    #                                (standardised coordinates; +inf when the check is off)
+    concavity_violation: Array  # fraction of checked pairs where that eigenvalue is < 0 (0 if off)
     potential_spread: Array  # std of f(X^i, Y^i): its growth is the first sign of divergence
 
 
@@ -103,7 +108,12 @@ class OTUpdate(NamedTuple):
     ``observation[m]`` gives the posterior ``[N, n]`` for that y; ``[N, m]`` conditions particle
     i on y_i (e.g. the joint check (T(Xbar, Y), Y)); ``[K, m]`` with K != N gives ``[K, N, n]``.
     ``simulated`` replaces the Y^i of the EnKF layer (default: those of the last apply).
-    ``potential(state, x[..., n], y[..., m])`` evaluates f in the original coordinates' frame.
+    After a diverged apply (``state.diverged``) the networks are re-initialised, so ``transport``
+    is then the untrained map (the identity, or the EnKF layer alone), not the EnKF fallback.
+    ``potential(state, x[..., n], y[..., m])`` evaluates the trained f at points given in the
+    original coordinates (f itself is the potential of the standardised problem).
+
+    Values in ``info`` are never NaN: +inf marks a loss that was not finite.
     """
 
     init: Callable[..., OTState]
@@ -202,6 +212,7 @@ def ot(
         potential_key, transport_key = jax.random.split(key)
         x, y = jnp.zeros((1, n), dtype), jnp.zeros((1, m), dtype)
         params = SaddleParams(potential_net.init(potential_key, x, y), transport_net.init(transport_key, x, y))
+        params = jax.tree.map(lambda leaf: leaf.astype(dtype), params)  # float64 data: float64 nets
         return TrainingState(
             params, potential_optimizer.init(params.potential), transport_optimizer.init(params.transport)
         )
@@ -226,9 +237,20 @@ def ot(
             gain=jnp.zeros((n, m), dtype),
             simulated_observations=jnp.zeros((num, m), dtype),
             num_updates=jnp.zeros((), jnp.int32),
+            diverged=jnp.array(False),
         )
 
     def apply(key: Array, state: OTState, particles: Array, observation: Array, model: StateSpaceModel):
+        n, m = state.standardisation.x_mean.shape[0], state.standardisation.y_mean.shape[0]
+        num = state.log_weights.shape[0]
+        if jnp.shape(particles) != (num, n):
+            raise ValueError(f"particles must have shape ({num}, {n}) like at init, got {jnp.shape(particles)}")
+        if jnp.shape(observation) != (m,):
+            raise ValueError(f"observation must have shape ({m},), got {jnp.shape(observation)}")
+        return _apply(key, state, particles, jnp.asarray(observation, particles.dtype), model)
+
+    @jax.jit  # compiled once per shapes and model, also when apply is called outside jit
+    def _apply(key, state, particles, observation, model):
         num, n = particles.shape
         simulate_key, train_key, fallback_key, reset_key = jax.random.split(key, 4)
         simulated = jax.vmap(model.sample_observation)(jax.random.split(simulate_key, num), particles)
@@ -242,7 +264,7 @@ def ot(
         # the N pairs. The trained map is applied to the original particles.
         silverman = (4.0 / (n + 2)) ** (1.0 / (n + 4)) * num ** (-1.0 / (n + 4))
         bandwidth = min(prior_smoothing * silverman, MAX_SMOOTHING_BANDWIDTH)
-        shrink = (1.0 - bandwidth**2) ** 0.5
+        correlation_factor = correlation_cholesky(xs)
 
         def simulate_standardised(sample_key, x_standard):
             x = x_standard * scaling.x_scale + scaling.x_mean
@@ -255,8 +277,8 @@ def ot(
             copies = jax.random.randint(copy_key, (batch_size,), 0, num)
             x, xbar = xs[pairs], xs[copies]
             if prior_smoothing:
-                x = shrink * x + bandwidth * jax.random.normal(jitter_key, x.shape, x.dtype)
-                xbar = shrink * xbar + bandwidth * jax.random.normal(copy_jitter_key, xbar.shape, x.dtype)
+                x = smoothed_draw(jitter_key, x, bandwidth, correlation_factor)
+                xbar = smoothed_draw(copy_jitter_key, xbar, bandwidth, correlation_factor)
             if fresh_observations:
                 y = simulate_standardised(y_key, x)
                 ybar = simulate_standardised(ybar_key, xbar) if enkf_layer else ys[copies]
@@ -270,7 +292,8 @@ def ot(
         training, trace = train(train_key, training, sample_batch, num_iterations)
         params = training.params
         gain = enkf_gain(xs, ys) if enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
-        y_standard = (observation - scaling.y_mean) / scaling.y_scale
+        observed = jnp.all(jnp.isfinite(observation))
+        y_standard = jnp.where(observed, (observation - scaling.y_mean) / scaling.y_scale, 0.0)
         moved = _transport_standardised(params.transport, xs, y_standard, ys, gain)
 
         potential_values = potential_net.apply(params.potential, xs, ys)
@@ -289,13 +312,16 @@ def ot(
             )
             min_eigenvalue = jnp.min(eigenvalues)
             violation = jnp.mean(eigenvalues < 0)
-        else:
-            min_eigenvalue = violation = jnp.array(jnp.nan, particles.dtype)
+        else:  # min over no points
+            min_eigenvalue, violation = jnp.array(jnp.inf, particles.dtype), jnp.zeros((), particles.dtype)
 
         enkf_particles, _, _ = fallback.apply(
             fallback_key, fallback.init(fallback_key, particles), particles, observation, model
         )
         posterior = jnp.where(diverged, enkf_particles, moved * scaling.x_scale + scaling.x_mean)
+        # A non-finite observation carries no information: the particles stay (run_filter skips
+        # such steps before getting here).
+        posterior = jnp.where(observed, posterior, particles)
         # A diverged training is not carried into the next update: start afresh.
         fresh = init_training(reset_key, n, ys.shape[1], particles.dtype)
         training = jax.tree.map(lambda new, old: jnp.where(diverged, new, old), fresh, training)
@@ -306,14 +332,15 @@ def ot(
             gain=gain,
             simulated_observations=simulated,
             num_updates=state.num_updates + 1,
+            diverged=diverged,
         )
         info = OTInfo(
             loss=trace.loss,
-            final_loss=trace.smoothed_loss,
+            final_loss=_not_nan(trace.smoothed_loss),
             diverged=diverged,
-            min_hessian_eigenvalue=min_eigenvalue,
-            concavity_violation=violation,
-            potential_spread=jnp.std(potential_values),
+            min_hessian_eigenvalue=_not_nan(min_eigenvalue),
+            concavity_violation=_not_nan(violation),
+            potential_spread=_not_nan(jnp.std(potential_values)),
         )
         return posterior, state, info
 
@@ -339,6 +366,11 @@ def ot(
                 f"simulated observations must have shape {(particles.shape[0], m)} (one per particle), "
                 f"got {simulated.shape}; pass the particles given to the last apply"
             )
+        return _transport(state, particles, observation, simulated)
+
+    @jax.jit  # compiled once per shapes
+    def _transport(state, particles, observation, simulated):
+        scaling = state.standardisation
         xs = (particles - scaling.x_mean) / scaling.x_scale
         ys = (simulated - scaling.y_mean) / scaling.y_scale
         y_standard = (observation - scaling.y_mean) / scaling.y_scale
@@ -358,6 +390,26 @@ def ot(
         return potential_net.apply(state.training.params.potential, xs, ys)
 
     return OTUpdate(init, apply, transport, potential)
+
+
+def correlation_cholesky(standardised: Array) -> Array:
+    """Cholesky factor ``[n, n]`` of the correlation matrix of standardised particles ``[N, n]``."""
+    num, n = standardised.shape
+    correlation = standardised.T @ standardised / num
+    ridge = CORRELATION_RIDGE * jnp.eye(n, dtype=standardised.dtype)
+    return jnp.linalg.cholesky(0.5 * (correlation + correlation.T) + ridge)
+
+
+def smoothed_draw(key: Array, x: Array, bandwidth: float, correlation_factor: Array) -> Array:
+    """A draw from the shrunk Gaussian kernel density estimate around standardised ``x[B, n]``:
+    sqrt(1 - h^2) x + h L eps with L L^T the particles' correlation matrix, so that the smoothed
+    prior keeps the particles' mean (0) and covariance (Liu and West's shrinkage)."""
+    noise = jax.random.normal(key, x.shape, x.dtype) @ correlation_factor.T
+    return (1.0 - bandwidth**2) ** 0.5 * x + bandwidth * noise
+
+
+def _not_nan(value: Array) -> Array:
+    return jnp.where(jnp.isnan(value), jnp.inf, value)
 
 
 def _standardisation(particles: Array, simulated: Array) -> Standardisation:
