@@ -293,3 +293,20 @@ def test_enkf_layer_and_unsmoothed_training_on_a_gaussian_problem():
         error = (float(posterior.mean()) - exact_mean) / exact_variance**0.5
         ratio = float(posterior.var()) / exact_variance
         assert abs(error) < MEAN_TOL and VAR_RANGE[0] < ratio < VAR_RANGE[1], (error, ratio)
+
+
+def test_any_optax_transformation_with_a_schedule_is_accepted():
+    # The authors' exponential learning-rate decay (0.999 per step) on both networks.
+    decayed = otf.ot(
+        num_iterations=20, concavity_points=0,
+        potential_optimizer=optax.adam(optax.exponential_decay(1e-3, 1, 0.999)),
+        transport_optimizer=optax.chain(optax.clip_by_global_norm(1.0),
+                                        optax.adam(optax.exponential_decay(1e-3, 1, 0.999))),
+    )
+    constant = otf.ot(num_iterations=20, concavity_points=0)
+    particles = prior_particles(num=64)
+    y = jnp.array([1.0, 0.5])
+    a, _, info = run_once(decayed, particles, y)
+    b, _, _ = run_once(constant, particles, y)
+    assert np.all(np.isfinite(a)) and not bool(info.diverged)
+    assert not np.allclose(a, b)
