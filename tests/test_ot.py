@@ -310,3 +310,16 @@ def test_any_optax_transformation_with_a_schedule_is_accepted():
     b, _, _ = run_once(constant, particles, y)
     assert np.all(np.isfinite(a)) and not bool(info.diverged)
     assert not np.allclose(a, b)
+
+
+def test_halving_iteration_schedule_in_a_filter():
+    # The authors' schedule: first at the first update, halved each update, down to the floor.
+    model = otf.models.squared_observation(dim=2)
+    _, observations = otf.simulate(jax.random.key(0), model, 5)
+    update = otf.ot(num_iterations=(8, 2), concavity_points=0)
+    result = otf.run_filter(jax.random.key(1), model, update, observations, num_particles=32)
+    run_per_step = np.sum(np.isfinite(np.asarray(result.info.loss)), axis=1)
+    np.testing.assert_array_equal(run_per_step, [8, 4, 2, 2, 2])
+    assert int(result.final_state.training.transport_opt_state[0].count) == 10 * 18
+    with pytest.raises(ValueError, match="floor <= first"):
+        otf.ot(num_iterations=(4, 8))

@@ -91,7 +91,7 @@ class OTState(NamedTuple):
 
 
 class OTInfo(NamedTuple):
-    loss: Array  # [num_iterations] J of each outer iteration (mini-batch estimate)
+    loss: Array  # [max iterations] J of each outer iteration (mini-batch estimate; +inf: not run)
     final_loss: Array  # smoothed J at the end of training
     diverged: Array  # bool: training diverged; the EnKF update was used instead
     min_hessian_eigenvalue: Array  # smallest eigenvalue of Hess_x(0.5|x|^2 - f) at checked pairs
@@ -129,7 +129,7 @@ def _check_positive_int(name, value):
 
 
 def ot(
-    num_iterations: int = 10_000,
+    num_iterations: int | tuple[int, int] = 10_000,
     batch_size: int = 128,
     inner_steps: int = 10,
     width: int = 32,
@@ -148,7 +148,9 @@ def ot(
     """Builds the OT Bayes update.
 
     Args:
-      num_iterations: outer iterations (one f step each) per update.
+      num_iterations: outer iterations (one f step each) per update; or ``(first, floor)``: the
+        authors' filter schedule, ``first`` at the first update, halved at every update down to
+        ``floor`` (e.g. ``(1024, 64)``; meant for warm-started filters).
       batch_size: mini-batch size of joint pairs and of independent copies.
       inner_steps: T optimiser steps per outer iteration.
       width, num_blocks, activation: the networks (both f and T); activation in
@@ -167,7 +169,15 @@ def ot(
       fresh_observations: draw each mini-batch's observations afresh from
         ``model.sample_observation`` (else reuse the Y^i simulated once per update).
     """
-    _check_positive_int("num_iterations", num_iterations)
+    if isinstance(num_iterations, tuple):
+        if len(num_iterations) != 2:
+            raise ValueError(f"num_iterations must be an int or (first, floor), got {num_iterations!r}")
+        first_iterations = _check_positive_int("num_iterations[0] (first)", num_iterations[0])
+        floor_iterations = _check_positive_int("num_iterations[1] (floor)", num_iterations[1])
+        if floor_iterations > first_iterations:
+            raise ValueError(f"num_iterations (first, floor) needs floor <= first, got {num_iterations}")
+    else:
+        first_iterations = floor_iterations = _check_positive_int("num_iterations", num_iterations)
     _check_positive_int("batch_size", batch_size)
     _check_positive_int("inner_steps", inner_steps)
     _check_positive_int("width", width)
@@ -205,7 +215,7 @@ def ot(
         transport_optimizer=transport_optimizer,
         inner_steps=inner_steps,
         enkf_layer=enkf_layer,
-        record_length=num_iterations,
+        record_length=first_iterations,
     )
 
     def init_training(key, n, m, dtype):
@@ -289,7 +299,9 @@ def ot(
         training = state.training
         if not warm_start:
             training = init_training(reset_key, n, ys.shape[1], particles.dtype)
-        training, trace = train(train_key, training, sample_batch, num_iterations)
+        halvings = jnp.minimum(state.num_updates, 30)
+        iterations = jnp.maximum(floor_iterations, jnp.right_shift(first_iterations, halvings))
+        training, trace = train(train_key, training, sample_batch, iterations)
         params = training.params
         gain = enkf_gain(xs, ys) if enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
         observed = jnp.all(jnp.isfinite(observation))
