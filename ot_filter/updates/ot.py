@@ -274,7 +274,7 @@ def ot(
         # the N pairs. The trained map is applied to the original particles.
         silverman = (4.0 / (n + 2)) ** (1.0 / (n + 4)) * num ** (-1.0 / (n + 4))
         bandwidth = min(prior_smoothing * silverman, MAX_SMOOTHING_BANDWIDTH)
-        correlation_factor = correlation_cholesky(xs)
+        correlation_factor = correlation_cholesky(xs) if prior_smoothing else None
 
         def simulate_standardised(sample_key, x_standard):
             x = x_standard * scaling.x_scale + scaling.x_mean
