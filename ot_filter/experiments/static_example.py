@@ -28,18 +28,8 @@ import numpy as np
 from ot_filter import metrics
 from ot_filter.models import squared_observation
 from ot_filter.reference import squared_observation_posterior
-from ot_filter.updates import enkf, ot, sir
-
-METHODS = ("enkf", "sir", "ot")
+from ot_filter.experiments._common import METHODS, make_updates, save_figure, stats
 MODE_TOLERANCE = 0.1
-
-
-def _make_updates(methods, ot_options):
-    builders = {"enkf": lambda: enkf(), "sir": lambda: sir(), "ot": lambda: ot(**(ot_options or {}))}
-    unknown = [name for name in methods if name not in builders]
-    if unknown:
-        raise ValueError(f"unknown methods {unknown}; choose from {list(builders)}")
-    return {name: builders[name]() for name in methods}
 
 
 def run_static_example(
@@ -59,7 +49,7 @@ def run_static_example(
     arrays for figures under ``"arrays"`` (the first ``keep_particles`` seeds).
     """
     model = squared_observation(dim=dim, noise=noise, observation_scale=0.5, static=True)
-    updates = _make_updates(methods, ot_options)
+    updates = make_updates(methods, ot_options)
     y = jnp.full((dim,), observation)
     exact = squared_observation_posterior(observation, noise, scale=0.5)
     grid, cdf = exact.grid, exact.cdf
@@ -126,7 +116,7 @@ def _summarise(results, methods, noise, num_particles, num_seeds, dim, observati
     summary = {
         "noise": noise, "num_particles": num_particles, "num_seeds": num_seeds, "dim": dim,
         "observation": observation,
-        "floor_w1": _stats(results["floor_w1"].mean(axis=1)),
+        "floor_w1": stats(results["floor_w1"].mean(axis=1)),
         "exact_grid_edge_mass": float(exact.edge_mass),
     }
     arrays = {"prior": results["prior"][:keep], "grid": np.asarray(exact.grid),
@@ -136,7 +126,7 @@ def _summarise(results, methods, noise, num_particles, num_seeds, dim, observati
         w1 = entry["w1"].mean(axis=1)  # [seeds]
         holds = np.all(np.abs(entry["positive_mass"] - 0.5) <= MODE_TOLERANCE, axis=1)
         method = {
-            "w1": _stats(w1),
+            "w1": stats(w1),
             "w1_per_seed": w1.round(4).tolist(),
             "positive_mass_per_seed": entry["positive_mass"].round(3).tolist(),
             "seeds_holding_both_modes": int(holds.sum()),
@@ -145,11 +135,11 @@ def _summarise(results, methods, noise, num_particles, num_seeds, dim, observati
         if name == "ot":
             method.update(
                 diverged_seeds=int(entry["diverged"].sum()),
-                final_loss=_stats(entry["final_loss"]),
-                min_hessian_eigenvalue=_stats(entry["min_hessian_eigenvalue"]),
-                concavity_violation=_stats(entry["concavity_violation"]),
-                joint_mmd=_stats(entry["joint_mmd"]),
-                reference_joint_mmd=_stats(entry["reference_joint_mmd"]),
+                final_loss=stats(entry["final_loss"]),
+                min_hessian_eigenvalue=stats(entry["min_hessian_eigenvalue"]),
+                concavity_violation=stats(entry["concavity_violation"]),
+                joint_mmd=stats(entry["joint_mmd"]),
+                reference_joint_mmd=stats(entry["reference_joint_mmd"]),
             )
             arrays["ot_transported_joint"] = entry["transported_joint"][:keep]
             arrays["ot_joint"] = entry["joint"][:keep]
@@ -166,18 +156,6 @@ def _summarise(results, methods, noise, num_particles, num_seeds, dim, observati
         summary["ot_beats_others_per_seed"] = int(beats.sum())
         summary["ot_success_seeds"] = int((beats & ot_holds).sum())
     return {"metrics": summary, "arrays": arrays}
-
-
-def _stats(values) -> dict:
-    values = np.asarray(values, dtype=np.float64)
-    count = values.size
-    return {
-        "mean": float(values.mean()),
-        "std": float(values.std(ddof=1)) if count > 1 else 0.0,
-        "stderr": float(values.std(ddof=1) / np.sqrt(count)) if count > 1 else 0.0,
-        "min": float(values.min()),
-        "max": float(values.max()),
-    }
 
 
 def plot_static_example(result: dict, out_dir: str, tag: str = "") -> list[str]:
@@ -197,7 +175,7 @@ def plot_static_example(result: dict, out_dir: str, tag: str = "") -> list[str]:
     prior = arrays["prior"][0]
     ax.scatter(prior[:, 0], prior[:, 1], s=4, alpha=0.5)
     ax.set(xlabel="$x_1$", ylabel="$x_2$", title=f"Prior samples ({label})", aspect="equal")
-    paths.append(_save(fig, out_dir, f"prior_{tag}.png"))
+    paths.append(save_figure(fig, out_dir, f"prior_{tag}.png"))
 
     if "ot_joint" in arrays:
         dim = prior.shape[1]
@@ -210,7 +188,7 @@ def plot_static_example(result: dict, out_dir: str, tag: str = "") -> list[str]:
             ax.set(xlabel=f"$x_{k + 1}$", ylabel=f"$y_{k + 1}$", title=f"Joint samples, coordinate {k + 1}")
             ax.legend(loc="upper center", fontsize=8, markerscale=3)
         fig.suptitle(f"OT consistency check ({label})")
-        paths.append(_save(fig, out_dir, f"joint_{tag}.png"))
+        paths.append(save_figure(fig, out_dir, f"joint_{tag}.png"))
 
     methods = [name for name in METHODS if f"{name}_posterior" in arrays]
     fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.6), squeeze=False, sharey=True)
@@ -225,16 +203,6 @@ def plot_static_example(result: dict, out_dir: str, tag: str = "") -> list[str]:
         ax.legend(fontsize=8)
     axes[0, 0].set_ylabel("density")
     fig.suptitle(f"Posterior of $x_1$ given y = {summary['observation']} ({label}; particles of the first run)")
-    paths.append(_save(fig, out_dir, f"posterior_{tag}.png"))
+    paths.append(save_figure(fig, out_dir, f"posterior_{tag}.png"))
     return paths
 
-
-def _save(fig, out_dir, name):
-    import matplotlib.pyplot as plt
-
-    path = os.path.join(out_dir, name)
-    fig.tight_layout()
-    fig.savefig(path + ".tmp.png", dpi=110)
-    os.replace(path + ".tmp.png", path)
-    plt.close(fig)
-    return path

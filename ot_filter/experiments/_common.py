@@ -1,0 +1,63 @@
+"""Helpers shared by the experiment modules: method builders, summary statistics, timing, figures."""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Callable, Sequence
+
+import jax
+import numpy as np
+
+from ot_filter.updates import enkf, ot, sir
+
+METHODS = ("enkf", "sir", "ot")
+
+
+def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: dict | None = None) -> dict:
+    """``{name: update}`` for the named methods; OT gets ``ot_defaults`` updated by ``ot_options``."""
+    options = dict(ot_defaults or {})
+    options.update(ot_options or {})
+    builders = {"enkf": lambda: enkf(), "sir": lambda: sir(), "ot": lambda: ot(**options)}
+    unknown = [name for name in methods if name not in builders]
+    if unknown or not methods:
+        raise ValueError(f"methods must be a non-empty subset of {list(builders)}, got {list(methods)}")
+    return {name: builders[name]() for name in methods}
+
+
+def stats(values) -> dict:
+    """Mean, std, standard error, min and max of a sample (JSON-ready floats)."""
+    values = np.asarray(values, dtype=np.float64)
+    count = values.size
+    return {
+        "mean": float(values.mean()),
+        "std": float(values.std(ddof=1)) if count > 1 else 0.0,
+        "stderr": float(values.std(ddof=1) / np.sqrt(count)) if count > 1 else 0.0,
+        "min": float(values.min()),
+        "max": float(values.max()),
+    }
+
+
+def compile_and_run(function: Callable, *args) -> tuple[object, dict]:
+    """Jit-compiles ``function`` for ``args``, runs it once; returns its output (as NumPy) and
+    ``{"compile_s", "run_s"}`` measured separately."""
+    start = time.perf_counter()
+    compiled = jax.jit(function).lower(*args).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    output = jax.block_until_ready(compiled(*args))
+    run_s = time.perf_counter() - start
+    return jax.tree.map(np.asarray, output), {"compile_s": compile_s, "run_s": run_s}
+
+
+def save_figure(fig, out_dir: str, name: str) -> str:
+    """Writes ``fig`` as ``out_dir/name`` atomically (temporary file, then rename); closes it."""
+    import matplotlib.pyplot as plt
+
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, name)
+    fig.tight_layout()
+    fig.savefig(path + ".tmp.png", dpi=110)
+    os.replace(path + ".tmp.png", path)
+    plt.close(fig)
+    return path
