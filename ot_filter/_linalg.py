@@ -28,17 +28,44 @@ def mean_and_anomalies(particles: Array):
     return mean[..., 0, :], particles - mean
 
 
+def masked_mean_and_anomalies(particles: Array, active: Array, num_active: Array):
+    """Mean ``[n]`` of the active rows of ``particles[N, n]`` (``active[N]`` bool, ``num_active``
+    of them) and their anomalies ``[N, n]``, with exact zero rows for the inactive (padding) ones.
+
+    Padding values never enter (``where``, not a multiplication by 0, so even inf or NaN there
+    cannot leak); with every row active the values are ``mean_and_anomalies``'s.
+    """
+    rows = active[:, None]
+    total = jnp.sum(jnp.where(rows, particles, 0.0), axis=0)
+    num = particles.shape[0]
+    # Nothing padded: total / num on the static num, jnp.mean's own expression (see
+    # updates.base.count_dependent).
+    mean = jnp.where(num_active == num, total / num, total / jnp.asarray(num_active, particles.dtype))
+    return mean, jnp.where(rows, particles - mean, 0.0)
+
+
 def weighted_covariance(particles: Array, log_weights: Array) -> Array:
     """Unbiased weighted covariance ``[..., n, n]`` of ``particles[..., N, n]``.
 
     C = sum_i w_i (x_i - mean)(x_i - mean)^T / (1 - sum_i w_i^2). When (nearly) all the mass sits
     on one particle the factor is 0 / 0; the equally weighted covariance is used instead (as
-    DAPPER does), so that a collapsed ensemble still gets a usable spread estimate.
+    DAPPER does), so that a collapsed ensemble still gets a usable spread estimate. Particles of
+    log-weight -inf (padding, ``updates.base``) get weight 0, also in that fallback, unless
+    fewer than two particles are left (then all count, to stay finite).
     """
     weights = jnp.exp(log_weights - jax.nn.logsumexp(log_weights, axis=-1, keepdims=True))
     eps = jnp.finfo(particles.dtype).eps
     collapsed = 1.0 - jnp.max(weights, axis=-1, keepdims=True) < 100 * eps
-    weights = jnp.where(collapsed, 1.0 / particles.shape[-2], weights)
+    num = particles.shape[-2]
+    counted = log_weights > -jnp.inf
+    num_counted = jnp.sum(counted, axis=-1, keepdims=True)
+    counted = counted | (num_counted < 2)
+    num_counted = jnp.sum(counted, axis=-1, keepdims=True)
+    # 1.0 / num as a Python constant when nothing is padded: bit for bit the unpadded fallback.
+    equal = jnp.where(
+        num_counted == num, 1.0 / num, counted / num_counted.astype(weights.dtype)
+    ).astype(weights.dtype)
+    weights = jnp.where(collapsed, equal, weights)
     mean = jnp.einsum("...i,...ij->...j", weights, particles)
     anomalies = particles - mean[..., None, :]
     sum_squared = jnp.sum(weights**2, axis=-1)[..., None, None]

@@ -12,6 +12,15 @@ program; it can itself be jitted and vmapped over keys and observation sequences
 
 Missing observations: a time step whose observation contains NaN is skipped (the update is the
 identity, ``observed[t]`` is False and that step's ``info`` is zeros); propagation goes on.
+
+Padded particle axis: ``num_active = k`` runs the filter with k particles inside arrays of
+``num_particles = N_max`` (the contract in ``updates.base``: after ``update.init`` the
+log-weights are -log k on the first k particles and -inf, padding, on the rest). k is a traced
+argument, so one compiled program serves every k and ``jax.vmap`` runs a whole particle-count
+sweep at once; the filter mean and spread are over the active particles only. Since
+``jax.random`` streams are prefix-consistent (``jax_threefry_partitionable``, the default), the
+first k initial draws and propagation noises are those of an unpadded run with N = k and the same
+key: the EnKF without rotation then reproduces that run up to floating-point rounding.
 """
 
 from __future__ import annotations
@@ -25,7 +34,7 @@ import numpy as np
 
 from ot_filter.metrics import spread as ensemble_spread
 from ot_filter.model import StateSpaceModel, model_dimensions
-from ot_filter.updates.base import BayesUpdate
+from ot_filter.updates.base import BayesUpdate, uniform_log_weights
 
 Array = jax.Array
 
@@ -36,9 +45,10 @@ class FilterResult(NamedTuple):
     """Output of ``run_filter`` (T observation times, N particles, n state dimensions).
 
     Attributes:
-      mean: ``[T, n]`` filtering mean after each update (weighted by the particle weights).
+      mean: ``[T, n]`` filtering mean after each update (weighted by the particle weights; over
+        the active particles only with ``num_active``).
       spread: ``[T]`` ensemble spread (``metrics.spread``: sqrt of the mean over components of the
-        unbiased weighted variance, as DAPPER's).
+        unbiased weighted variance, as DAPPER's; padding has weight 0).
       info: the update's per-step diagnostics, each leaf with a leading axis T.
       observed: ``[T]`` bool, False where the observation had NaN and the update was skipped.
       particles: ``[S, N, n]`` particles after the updates at ``saved_steps`` (None if S = 0).
@@ -67,6 +77,7 @@ def run_filter(
     num_particles: int,
     save_every: int = 1,
     initial_particles: Array | None = None,
+    num_active: Array | int | None = None,
 ) -> FilterResult:
     """Filters a sequence of observations with a particle Bayes update.
 
@@ -80,6 +91,10 @@ def run_filter(
         0 keeps none, as does any k > T (static).
       initial_particles: optional ``[N, n]`` initial ensemble instead of N draws from pi_0
         (e.g. a filter started from a different prior than the truth).
+      num_active: optional number k of active particles, 2 <= k <= N, an int or a traced int
+        scalar (it may be vmapped over); the other N - k are padding (see the module docstring).
+        None: all N are active. A Python or concrete value out of range raises ValueError; a
+        traced one out of range gives NaN ``mean`` and ``spread``.
 
     Returns:
       A ``FilterResult``.
@@ -110,19 +125,43 @@ def run_filter(
             raise ValueError(
                 f"initial_particles must have shape {expected}, got {jnp.shape(initial_particles)}"
             )
+    if num_active is not None:
+        num_active = _check_num_active(num_active, int(num_particles))
     num_steps = jnp.shape(observations)[0]
     if save_every > num_steps:
         save_every = 0  # no step would be saved
     result = _run_filter(
         key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
-        initial_particles,
+        initial_particles, num_active,
     )
     saved_steps = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
     return result._replace(saved_steps=saved_steps)
 
 
+def _check_num_active(num_active, num_particles: int) -> Array:
+    """An int32 scalar; concrete values must lie in [2, num_particles]."""
+    dtype = getattr(num_active, "dtype", None)
+    if isinstance(num_active, bool) or not (
+        isinstance(num_active, (int, np.integer))
+        or (dtype is not None and jnp.issubdtype(dtype, jnp.integer) and jnp.ndim(num_active) == 0)
+    ):
+        raise TypeError(
+            f"num_active must be an int or an int scalar array, got {num_active!r}"
+        )
+    if not isinstance(num_active, jax.core.Tracer):
+        value = int(num_active)
+        if not 2 <= value <= num_particles:
+            raise ValueError(
+                f"num_active must satisfy 2 <= num_active <= num_particles = {num_particles}, "
+                f"got {value}"
+            )
+    return jnp.asarray(num_active, jnp.int32)
+
+
 @partial(jax.jit, static_argnames=("update", "num_particles", "save_every"))
-def _run_filter(key, model, update, observations, num_particles, save_every, initial_particles):
+def _run_filter(
+    key, model, update, observations, num_particles, save_every, initial_particles, num_active
+):
     init_key, state_key, steps_key = jax.random.split(key, 3)
     if initial_particles is None:
         particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
@@ -130,6 +169,12 @@ def _run_filter(key, model, update, observations, num_particles, save_every, ini
         particles = jnp.asarray(initial_particles)
     observations = observations.astype(particles.dtype)
     state = update.init(state_key, particles, model)
+    if num_active is not None:
+        # A traced count out of range cannot raise: it is clipped for the run, and its mean and
+        # spread are NaN.
+        valid = (num_active >= 2) & (num_active <= num_particles)
+        num_active = jnp.clip(num_active, 2, num_particles)
+        state = state._replace(log_weights=uniform_log_weights(particles, num_active))
 
     def step(carry, inputs):
         particles, state = carry
@@ -186,6 +231,9 @@ def _run_filter(key, model, update, observations, num_particles, save_every, ini
             )
             outputs = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
     mean, spread, info, observed = outputs
+    if num_active is not None:
+        mean = jnp.where(valid, mean, jnp.nan)
+        spread = jnp.where(valid, spread, jnp.nan)
     return FilterResult(
         mean=mean,
         spread=spread,

@@ -1,6 +1,12 @@
 """Bayes updates: each a builder returning ``BayesUpdate(init, apply)``."""
 
-from ot_filter.updates.base import BayesUpdate, UniformWeightsState
+from ot_filter.updates.base import (
+    BayesUpdate,
+    UniformWeightsState,
+    active_mask,
+    count_active,
+    uniform_log_weights,
+)
 from ot_filter.updates.enkf import EnKFInfo, enkf
 from ot_filter.updates.ot import OTInfo, OTState, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
@@ -16,8 +22,11 @@ __all__ = [
     "SIRInfo",
     "SIRState",
     "UniformWeightsState",
+    "active_mask",
+    "count_active",
     "enkf",
     "ot",
     "resample_indices",
     "sir",
+    "uniform_log_weights",
 ]

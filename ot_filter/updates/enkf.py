@@ -31,6 +31,17 @@ covariance are unchanged). It spreads the analysis over all members and stops th
 square root from building up outliers; on the Lorenz-63 benchmark with N = 10 it lowers the RMSE
 from about 0.71 to 0.58. It draws (N - 1)^2 normals and costs O(N^2 n): meant for small ensembles
 (N <= 4096).
+
+Padded particle axis (``updates.base``): particles of log-weight -inf in the state are padding;
+with k active ones, every statistic is over them only: the mean, the anomalies (exact zero rows
+for padding, so padding values never enter), the covariances with divisor k - 1, the centring of
+the perturbations and the ETKF's S = ... / sqrt(k - 1). Zero anomaly rows make I + S S^T block
+diagonal, (I_k + S_a S_a^T) on the active block and the identity on padding, so the symmetric
+square root's transform of the active block is exactly the k-particle one; the thin-SVD formulas
+above are unchanged. The rotation acts on the active block only: a Haar rotation of O(k - 1) on
+the complement of the k-vector of ones (Stewart's reflections beyond k - 2 are the identity).
+Padding comes out at the posterior mean (zero anomaly), keeps log-weight -inf, and with
+``rotate=True`` still costs O(N_max^2 n).
 """
 
 from __future__ import annotations
@@ -40,9 +51,16 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import mean_and_anomalies, truncated_pinv_solve
+from ot_filter._linalg import masked_mean_and_anomalies, truncated_pinv_solve
 from ot_filter.model import StateSpaceModel
-from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_log_weights
+from ot_filter.updates.base import (
+    BayesUpdate,
+    UniformWeightsState,
+    active_mask,
+    count_active,
+    count_dependent,
+    uniform_log_weights,
+)
 
 Array = jax.Array
 
@@ -79,46 +97,64 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
 
     def apply(key: Array, state: UniformWeightsState, particles: Array, observation: Array,
               model: StateSpaceModel):
+        if rotate and particles.shape[0] > MAX_ROTATED_PARTICLES:
+            raise ValueError(
+                f"enkf(rotate=True) draws (N - 1)^2 normals per update; num_particles must be "
+                f"<= {MAX_ROTATED_PARTICLES}, got {particles.shape[0]}"
+            )
+        if not perturbed and not model.has_gaussian_observation_noise:
+            raise ValueError(
+                "enkf(perturbed=False) needs a model with additive Gaussian observation noise: "
+                "give model.observation_function and model.observation_noise_cov"
+            )
         update_key, rotation_key = jax.random.split(key)
-        mean, anomalies = mean_and_anomalies(particles)
+        active = active_mask(state.log_weights)
+        num_active = count_active(state.log_weights)
+        mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
         if inflation != 1.0:
             anomalies = inflation * anomalies
             particles = mean + anomalies
         if perturbed:
-            particles, condition = _perturbed_update(update_key, particles, anomalies, observation, model)
+            particles, condition = _perturbed_update(
+                update_key, particles, anomalies, observation, model, active, num_active
+            )
         else:
-            if not model.has_gaussian_observation_noise:
-                raise ValueError(
-                    "enkf(perturbed=False) needs a model with additive Gaussian observation noise: "
-                    "give model.observation_function and model.observation_noise_cov"
-                )
-            particles, condition = _square_root_update(mean, anomalies, observation, model)
+            particles, condition = _square_root_update(
+                mean, anomalies, observation, model, active, num_active
+            )
+        posterior_mean, posterior_anomalies = masked_mean_and_anomalies(particles, active, num_active)
         if rotate:
-            if particles.shape[0] > MAX_ROTATED_PARTICLES:
-                raise ValueError(
-                    f"enkf(rotate=True) draws (N - 1)^2 normals per update; num_particles must be "
-                    f"<= {MAX_ROTATED_PARTICLES}, got {particles.shape[0]}"
-                )
-            posterior_mean, posterior_anomalies = mean_and_anomalies(particles)
-            particles = posterior_mean + _random_rotation(rotation_key, posterior_anomalies)
+            # Active rows first (stable: the unpadded order is kept), rotated, put back.
+            order = jnp.argsort((~active).astype(jnp.int32), stable=True)
+            rotated = _random_rotation(rotation_key, posterior_anomalies[order], num_active)
+            particles = posterior_mean + jnp.zeros_like(rotated).at[order].set(rotated)
+        # Padding leaves at the posterior mean: finite and bounded, whatever it came in as.
+        particles = jnp.where(active[:, None], particles, posterior_mean)
         return particles, state, EnKFInfo(condition)
 
     return BayesUpdate(init, apply)
 
 
-def _perturbed_update(key, particles, anomalies, observation, model):
+def _perturbed_update(key, particles, anomalies, observation, model, active, num_active):
+    """Anomalies have zero padding rows; padding rows of the result are left for the caller."""
     num_particles = particles.shape[0]
+    rows = active[:, None]
+
+    def unbiased(second_moment):  # / (k - 1)
+        return count_dependent(lambda count: second_moment / (count - 1), num_active, num_particles)
+
     if model.has_gaussian_observation_noise:
         # Exact R: Cov(h) + R is positive definite, so Cholesky suffices (cheaper than eigh).
         predicted = jax.vmap(model.observation_function)(particles)
         noise_cov = jnp.asarray(model.observation_noise_cov, particles.dtype)
         noise_chol = jnp.linalg.cholesky(noise_cov)
         noise = jax.random.normal(key, predicted.shape, particles.dtype) @ noise_chol.T
-        noise = noise - jnp.mean(noise, axis=0)  # centred perturbations: no sampling bias
-        _, predicted_anomalies = mean_and_anomalies(predicted)
-        innovation_cov = predicted_anomalies.T @ predicted_anomalies / (num_particles - 1) + noise_cov
-        cross_cov = anomalies.T @ predicted_anomalies / (num_particles - 1)  # [n, m]
-        innovations = observation - predicted - noise  # [N, m]
+        # Centred perturbations (no sampling bias), over the active particles.
+        _, noise = masked_mean_and_anomalies(noise, active, num_active)
+        _, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
+        innovation_cov = unbiased(predicted_anomalies.T @ predicted_anomalies) + noise_cov
+        cross_cov = unbiased(anomalies.T @ predicted_anomalies)  # [n, m]
+        innovations = jnp.where(rows, observation - predicted - noise, 0.0)  # [N, m]
         chol = jnp.linalg.cholesky(innovation_cov)
         solved = jax.scipy.linalg.cho_solve((chol, True), innovations.T)
         diagonal = jnp.diag(chol)
@@ -127,19 +163,20 @@ def _perturbed_update(key, particles, anomalies, observation, model):
     # Simulation-based: Cov(Y) is estimated and may be singular (e.g. N <= m): eigh.
     keys = jax.random.split(key, num_particles)
     simulated = jax.vmap(model.sample_observation)(keys, particles)
-    _, simulated_anomalies = mean_and_anomalies(simulated)
-    innovation_cov = simulated_anomalies.T @ simulated_anomalies / (num_particles - 1)
-    cross_cov = anomalies.T @ simulated_anomalies / (num_particles - 1)
+    _, simulated_anomalies = masked_mean_and_anomalies(simulated, active, num_active)
+    innovation_cov = unbiased(simulated_anomalies.T @ simulated_anomalies)
+    cross_cov = unbiased(anomalies.T @ simulated_anomalies)
     eps = jnp.finfo(particles.dtype).eps
     # Truncated pseudo-inverse: a singular Cov(Y) (N <= m, or a collapsed ensemble with a
     # deterministic simulator) updates only along the directions the ensemble spans.
+    innovations = jnp.where(rows, observation - simulated, 0.0)
     solved, condition = truncated_pinv_solve(
-        innovation_cov, (observation - simulated).T, relative_cutoff=observation.shape[0] * eps
+        innovation_cov, innovations.T, relative_cutoff=observation.shape[0] * eps
     )
     return particles + (cross_cov @ solved).T, condition
 
 
-def _square_root_update(mean, anomalies, observation, model):
+def _square_root_update(mean, anomalies, observation, model, active, num_active):
     """ETKF with the symmetric square root through the smaller Gram matrix of S (see above).
 
     With S S^T = U diag(s2) U^T (N <= m) the transform is A + U diag(f(s2)) U^T A with
@@ -148,20 +185,28 @@ def _square_root_update(mean, anomalies, observation, model):
     where f(s2) / s2 = -1 / (sqrt(1 + s2) (1 + sqrt(1 + s2))) is finite at s2 = 0, and the
     mean weights S V diag(1 / (1 + s2)) V^T d. Adding the identity keeps the Gram matrix's
     squared condition number harmless: only 1 + s2 matters.
+
+    With padding (zero rows of A, hence of S) N is the padded size in the choice of branch and
+    k = ``num_active`` everywhere else; rank(S) <= k - 1.
     """
     num_particles = anomalies.shape[0]
     m = observation.shape[0]
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
-    predicted_mean, predicted_anomalies = mean_and_anomalies(predicted)
+    predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
     # Whitening matrix L^{-1} of the model's constant R, formed once: the whitening is then a
     # matmul. (Triangular solves against the ensemble would become one batched LAPACK solve per
     # member under vmap, which is slower and deadlocked jaxlib's CPU thread pool for vmaps over
     # 128+ simulations on 2 cores.)
     noise_chol = jnp.linalg.cholesky(jnp.asarray(model.observation_noise_cov, dtype))
     whitening = jax.scipy.linalg.solve_triangular(noise_chol, jnp.eye(m, dtype=dtype), lower=True)
-    scale = jnp.sqrt(jnp.asarray(num_particles - 1, dtype))
-    whitened = predicted_anomalies @ whitening.T / scale  # S [N, m]
+
+    def over_scale(value):  # / sqrt(k - 1)
+        return count_dependent(
+            lambda count: value / jnp.sqrt(jnp.asarray(count - 1, dtype)), num_active, num_particles
+        )
+
+    whitened = over_scale(predicted_anomalies @ whitening.T)  # S [N, m]
     innovation = whitening @ (observation - predicted_mean)  # d [m]
     if num_particles <= m:
         s2, left = jnp.linalg.eigh(whitened @ whitened.T)
@@ -177,14 +222,22 @@ def _square_root_update(mean, anomalies, observation, model):
         shrink_over_s2 = -1.0 / (root * (1.0 + root))
         projected = right.T @ (whitened.T @ anomalies)  # [m, n]
         posterior_anomalies = anomalies + whitened @ (right @ (shrink_over_s2[:, None] * projected))
-    posterior_mean = mean + mean_weights @ anomalies / scale
-    # Rank of S is at most N - 1: with N - 1 < m some eigenvalues of I + S^T S are exactly 1.
-    smallest = 1.0 if num_particles - 1 < m else 1.0 + jnp.min(s2)
+    posterior_mean = mean + over_scale(mean_weights @ anomalies)
+    # Rank of S is at most k - 1: with k - 1 < m some eigenvalues of I + S^T S are exactly 1.
+    if num_particles - 1 < m:
+        smallest = 1.0
+    else:
+        smallest = jnp.where(num_active - 1 < m, 1.0, 1.0 + jnp.min(s2))
     return posterior_mean + posterior_anomalies, (1.0 + jnp.max(s2)) / smallest
 
 
-def _random_rotation(key, anomalies):
+def _random_rotation(key, anomalies, num_active=None):
     """O A with O a Haar-random orthogonal matrix on the complement of the ones vector.
+
+    With ``num_active = k`` (rows k.. are padding, zero anomalies) O is the k x k such rotation
+    on the first k rows and the identity on the rest: the ones vector is that of the first k
+    rows and Q is Haar on O(k - 1), the reflections k - 2.. of Stewart's product being replaced
+    by the identity (all loops keep the static size N).
 
     The Householder reflection P (symmetric, orthogonal) maps e_1 to ones / sqrt(N), so
     O = P diag(1, Q) P with Q Haar on O(N - 1) satisfies O 1 = 1. Q is drawn by Stewart's (1980)
@@ -194,7 +247,10 @@ def _random_rotation(key, anomalies):
     """
     num = anomalies.shape[0]
     dtype = anomalies.dtype
-    direction = jnp.zeros(num, dtype).at[0].set(1.0) - jnp.full(num, 1.0 / jnp.sqrt(num), dtype)
+    count = num if num_active is None else num_active
+    inverse_sqrt = count_dependent(lambda c: 1.0 / jnp.sqrt(c), count, num)
+    ones = jnp.where(jnp.arange(num) < count, inverse_sqrt, 0.0)  # unit vector of active ones
+    direction = jnp.zeros(num, dtype).at[0].set(1.0) - ones
     direction = direction / jnp.linalg.norm(direction)
 
     def reflect(matrix):
@@ -205,12 +261,19 @@ def _random_rotation(key, anomalies):
     gaussians = jax.random.normal(gaussians_key, (size, size), dtype)
     signs = jnp.where(jax.random.bernoulli(sign_key, 0.5, (size,)), 1.0, -1.0).astype(dtype)
 
+    block = count - 1  # Q acts on rows 1..block; padding rows beyond
+
     def stewart_factors(k):
-        # Reflection k acts on coordinates k..size-1; its sign factor is -sign(x_k).
-        x = jnp.where(jnp.arange(size) >= k, gaussians[k], 0.0)
+        # Reflection k acts on coordinates k..block-1; its sign factor is -sign(x_k). From
+        # k = block - 1 on (the last coordinate of the block, then padding) there is no
+        # reflection, only the random sign.
+        coordinates = jnp.arange(size)
+        x = jnp.where((coordinates >= k) & (coordinates < block), gaussians[k], 0.0)
         pivot_sign = jnp.where(x[k] >= 0, 1.0, -1.0).astype(dtype)
         u = x.at[k].add(pivot_sign * jnp.linalg.norm(x))
-        return u / jnp.linalg.norm(u), -pivot_sign
+        in_use = k < block - 1
+        length = jnp.where(in_use, jnp.linalg.norm(u), 1.0)
+        return jnp.where(in_use, u / length, 0.0), jnp.where(in_use, -pivot_sign, signs[k])
 
     ks = jnp.arange(size - 1)
     vectors, reflection_signs = jax.vmap(stewart_factors)(ks)

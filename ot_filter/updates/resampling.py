@@ -8,7 +8,18 @@ arithmetic) and residual
 
 All take log-weights, never exponentiate them unnormalised, and cost O(N log N) through one
 ``searchsorted`` of N sorted points in the cumulative weights (multinomial gets its sorted
-uniforms in O(N) from normalised exponential spacings instead of sorting).
+uniforms in O(N) from normalised exponential spacings instead of sorting). A point that rounding
+puts on a particle of zero weight (a flat stretch of the cumulative weights, or past its end) is
+moved to the next particle of positive weight: zero-weight particles are never drawn.
+
+Padded particle axis (``updates.base``): with ``num_active = k`` (an int or a traced int scalar)
+only k draws are made, from the particles of positive weight (padding has log-weight -inf, so
+weight 0), and written into the first k slots: the comb has k teeth, e.g. systematic
+u_j = (j + U) / k, stratified u_j = (j + U_j) / k for j < k, so each scheme is exactly the
+k-particle scheme on the active weights (E[count_i] = k w_i). Slot j >= k repeats slot j mod k
+(a copy of a draw: finite values to carry as padding, at log-weight -inf). Residual resampling
+needs no static count: floor(k w_i) copies fill the first sum_i floor(k w_i) <= k slots, the
+remaining ones are the multinomial draws, all in arrays of the static size N.
 """
 
 from __future__ import annotations
@@ -17,14 +28,20 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from ot_filter.updates.base import count_dependent
 
 Array = jax.Array
 
 __all__ = ["RESAMPLING_SCHEMES", "resample_indices"]
 
 
-def _normalised_cdf(log_weights: Array) -> Array:
-    weights = jnp.exp(log_weights - jax.nn.logsumexp(log_weights))
+def _normalised_weights(log_weights: Array) -> Array:
+    return jnp.exp(log_weights - jax.nn.logsumexp(log_weights))
+
+
+def _cdf(weights: Array) -> Array:
     cdf = jnp.cumsum(weights)
     return cdf / cdf[-1]  # exact 1 at the end despite rounding
 
@@ -35,6 +52,30 @@ def _invert_cdf(cdf: Array, points: Array) -> Array:
     return jnp.clip(indices, 0, cdf.shape[0] - 1)
 
 
+def _draw(weights: Array, points: Array) -> Array:
+    """Inverse-CDF ancestors of ``points`` in [0, 1), never a particle of zero weight.
+
+    Rounding in the cumulative sum can leave a point on a zero-weight particle (inside a flat
+    stretch, or past the last positive weight, where padding sits): such an index moves to the
+    next particle of positive weight, or to the last one. Positive-weight indices are unchanged.
+    """
+    indices = _invert_cdf(_cdf(weights), points)
+    num = weights.shape[0]
+    positions = jnp.arange(num)
+    positive = weights > 0
+    following = jax.lax.cummin(jnp.where(positive, positions, num), reverse=True)
+    last = jnp.max(jnp.where(positive, positions, 0))
+    nearest = jnp.where(following < num, following, last)
+    nearest = jnp.where(jnp.any(positive), nearest, positions)  # NaN weights: as drawn
+    return nearest[indices]
+
+
+def _strata(num: int, num_active) -> Array:
+    """The stratum j mod k of each of the N slots (j itself when nothing is padded)."""
+    positions = jnp.arange(num)
+    return positions if num_active is None else positions % num_active
+
+
 def _sorted_uniforms(key: Array, num: int, dtype) -> Array:
     """num sorted iid U(0,1) in O(num): normalised partial sums of exponentials."""
     spacings = jax.random.exponential(key, (num + 1,), dtype)
@@ -42,48 +83,66 @@ def _sorted_uniforms(key: Array, num: int, dtype) -> Array:
     return cumulative[:-1] / cumulative[-1]
 
 
-def multinomial(key: Array, log_weights: Array) -> Array:
-    cdf = _normalised_cdf(log_weights)
-    return _invert_cdf(cdf, _sorted_uniforms(key, log_weights.shape[0], log_weights.dtype))
+def multinomial(key: Array, log_weights: Array, num_active=None) -> Array:
+    num, dtype = log_weights.shape[0], log_weights.dtype
+    if num_active is None:
+        points = _sorted_uniforms(key, num, dtype)
+    else:
+        # k sorted uniforms from the first k + 1 of N + 1 exponential spacings.
+        cumulative = jnp.cumsum(jax.random.exponential(key, (num + 1,), dtype))
+        points = cumulative[_strata(num, num_active)] / cumulative[num_active]
+    return _draw(_normalised_weights(log_weights), points)
 
 
-def stratified(key: Array, log_weights: Array) -> Array:
-    num = log_weights.shape[0]
-    cdf = _normalised_cdf(log_weights)
-    offsets = jax.random.uniform(key, (num,), log_weights.dtype)
-    return _invert_cdf(cdf, (jnp.arange(num, dtype=log_weights.dtype) + offsets) / num)
+def stratified(key: Array, log_weights: Array, num_active=None) -> Array:
+    num, dtype = log_weights.shape[0], log_weights.dtype
+    offsets = jax.random.uniform(key, (num,), dtype)
+    if num_active is None:
+        points = (jnp.arange(num, dtype=dtype) + offsets) / num
+    else:
+        strata = _strata(num, num_active)
+        shifted = strata.astype(dtype) + offsets[strata]
+        points = count_dependent(lambda count: shifted / count, num_active, num)
+    return _draw(_normalised_weights(log_weights), points)
 
 
-def systematic(key: Array, log_weights: Array) -> Array:
-    num = log_weights.shape[0]
-    cdf = _normalised_cdf(log_weights)
-    offset = jax.random.uniform(key, (), log_weights.dtype)
-    return _invert_cdf(cdf, (jnp.arange(num, dtype=log_weights.dtype) + offset) / num)
+def systematic(key: Array, log_weights: Array, num_active=None) -> Array:
+    num, dtype = log_weights.shape[0], log_weights.dtype
+    offset = jax.random.uniform(key, (), dtype)
+    if num_active is None:
+        points = (jnp.arange(num, dtype=dtype) + offset) / num
+    else:
+        shifted = _strata(num, num_active).astype(dtype) + offset
+        points = count_dependent(lambda count: shifted / count, num_active, num)
+    return _draw(_normalised_weights(log_weights), points)
 
 
-def residual(key: Array, log_weights: Array) -> Array:
-    num = log_weights.shape[0]
-    scaled = num * jnp.exp(log_weights - jax.nn.logsumexp(log_weights))
+def residual(key: Array, log_weights: Array, num_active=None) -> Array:
+    num, dtype = log_weights.shape[0], log_weights.dtype
+    count = num if num_active is None else jnp.asarray(num_active, dtype)
+    scaled = count * _normalised_weights(log_weights)
     # N w_i = 0.99999994 for uniform weights in float32: a relative nudge of a few ulps keeps
     # the integer parts (and the scheme's low variance) that rounding would lose.
     eps = jnp.finfo(scaled.dtype).eps
     copies = jnp.floor(scaled * (1.0 + 8.0 * eps)).astype(jnp.int32)
     num_deterministic = jnp.sum(copies)
     # Slot j < num_deterministic goes to the particle whose copy range contains j.
-    slots = jnp.arange(num)
-    deterministic = _invert_cdf(jnp.cumsum(copies), slots)
-    # The remaining slots are multinomial draws from the residual weights N w - floor(N w).
+    strata = _strata(num, num_active)
+    deterministic = _invert_cdf(jnp.cumsum(copies), strata)
+    # The remaining slots are multinomial draws from the residual weights k w - floor(k w).
     leftover = jnp.maximum(scaled - copies, 0.0)
     log_leftover = jnp.where(leftover > 0, jnp.log(jnp.where(leftover > 0, leftover, 1.0)), -jnp.inf)
-    # If nothing is left over (all N w_i integers) every slot is deterministic anyway.
-    log_leftover = jnp.where(jnp.any(leftover > 0), log_leftover, jnp.zeros_like(log_leftover))
+    # If nothing is left over (all k w_i integers) every slot is deterministic anyway.
+    log_leftover = jnp.where(
+        jnp.any(leftover > 0), log_leftover, jnp.where(log_weights > -jnp.inf, 0.0, -jnp.inf)
+    )
     # iid (unsorted) draws: taking the tail of a sorted sample would favour high indices.
-    uniforms = jax.random.uniform(key, (num,), log_weights.dtype)
-    random = _invert_cdf(_normalised_cdf(log_leftover), uniforms)
-    return jnp.where(slots < num_deterministic, deterministic, random)
+    uniforms = jax.random.uniform(key, (num,), dtype)
+    random = _draw(_normalised_weights(log_leftover), uniforms[strata])
+    return jnp.where(strata < num_deterministic, deterministic, random)
 
 
-RESAMPLING_SCHEMES: dict[str, Callable[[Array, Array], Array]] = {
+RESAMPLING_SCHEMES: dict[str, Callable[..., Array]] = {
     "multinomial": multinomial,
     "stratified": stratified,
     "systematic": systematic,
@@ -91,10 +150,22 @@ RESAMPLING_SCHEMES: dict[str, Callable[[Array, Array], Array]] = {
 }
 
 
-def resample_indices(key: Array, log_weights: Array, scheme: str = "systematic") -> Array:
-    """Ancestor indices ``[N]`` drawn from ``log_weights[N]`` (any normalisation)."""
+def resample_indices(
+    key: Array, log_weights: Array, scheme: str = "systematic", num_active: Array | int | None = None
+) -> Array:
+    """Ancestor indices ``[N]`` drawn from ``log_weights[N]`` (any normalisation).
+
+    ``num_active = k`` (an int or a traced int scalar, 1 <= k <= N; None means N): draw k
+    ancestors into slots 0..k-1 (the comb has k teeth), slot j >= k repeats slot j mod k. The
+    caller gives the padding log-weight -inf, so that it is never drawn.
+    """
     if scheme not in RESAMPLING_SCHEMES:
         raise ValueError(
             f"resampling must be one of {sorted(RESAMPLING_SCHEMES)}, got {scheme!r}"
         )
-    return RESAMPLING_SCHEMES[scheme](key, log_weights)
+    if num_active is not None and not isinstance(num_active, jax.core.Tracer):
+        num = jnp.shape(log_weights)[0]
+        value = np.asarray(num_active)
+        if value.shape != () or not np.issubdtype(value.dtype, np.integer) or not 1 <= value <= num:
+            raise ValueError(f"num_active must be an int in [1, {num}], got {num_active!r}")
+    return RESAMPLING_SCHEMES[scheme](key, log_weights, num_active)

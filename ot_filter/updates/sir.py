@@ -19,6 +19,14 @@ jittered, not only the duplicated ones.
 
 Degenerate weights (all log-likelihoods -inf or NaN, or +inf) cannot be normalised: the update
 is then skipped (the prior weights are kept), ``info.degenerate`` is set and nothing becomes NaN.
+
+Padded particle axis (``updates.base``): particles of prior log-weight -inf are padding and
+N above becomes the number k of active particles everywhere. Padding keeps weight -inf whatever
+its likelihood; the ESS threshold is ``ess_threshold * k``; resampling makes k draws among the
+active particles into the first k slots (the comb has k teeth; the padding slots get copies of
+the draws, at log-weight -inf); the jitter bandwidth is ``k^(-1/(n+4))`` and C is the weighted
+covariance of the active particles. Since -inf marks padding, an active particle of zero
+likelihood gets the most negative finite log-weight instead (its weight is still exactly 0).
 """
 
 from __future__ import annotations
@@ -31,7 +39,13 @@ import jax.numpy as jnp
 from ot_filter._linalg import psd_sqrt, weighted_covariance
 from ot_filter.metrics import ess as effective_sample_size
 from ot_filter.model import StateSpaceModel
-from ot_filter.updates.base import BayesUpdate, uniform_log_weights
+from ot_filter.updates.base import (
+    BayesUpdate,
+    active_mask,
+    count_active,
+    count_dependent,
+    uniform_log_weights,
+)
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES
 
 Array = jax.Array
@@ -40,7 +54,7 @@ __all__ = ["SIRState", "SIRInfo", "sir"]
 
 
 class SIRState(NamedTuple):
-    log_weights: Array  # [N], normalised
+    log_weights: Array  # [N], normalised over the active particles, -inf on padding
 
 
 class SIRInfo(NamedTuple):
@@ -76,13 +90,6 @@ def sir(
         del key, model
         return SIRState(uniform_log_weights(particles))
 
-    def resample(key, particles, log_weights):
-        resample_key, jitter_key = jax.random.split(key)
-        resampled = particles[resample_scheme(resample_key, log_weights)]
-        if jitter > 0.0:
-            resampled = resampled + _regularisation_noise(jitter_key, particles, log_weights, jitter)
-        return resampled, uniform_log_weights(particles)
-
     def apply(key: Array, state: SIRState, particles: Array, observation: Array,
               model: StateSpaceModel):
         if model.log_likelihood is None:
@@ -90,20 +97,35 @@ def sir(
                 "sir needs model.log_likelihood (the analytical setting); this model only has a "
                 "simulator: use enkf or ot instead"
             )
+        num_particles = particles.shape[0]
+        active = active_mask(state.log_weights)
+        num_active = count_active(state.log_weights)
         log_likelihoods = jax.vmap(model.log_likelihood, (None, 0))(observation, particles)
         log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
-        unnormalised = state.log_weights + log_likelihoods
+        # `where`, not -inf + log l: a padding likelihood of +inf must not give NaN.
+        unnormalised = jnp.where(active, state.log_weights + log_likelihoods, -jnp.inf)
         increment = jax.nn.logsumexp(unnormalised)  # prior weights are normalised
         degenerate = ~jnp.isfinite(increment)
         log_weights = jnp.where(degenerate, state.log_weights, unnormalised - increment)
+        smallest = jnp.finfo(log_weights.dtype).min  # exp(smallest) = 0, but it is not padding
+        log_weights = jnp.where(active, jnp.maximum(log_weights, smallest), -jnp.inf)
         ess = effective_sample_size(log_weights)
 
-        num_particles = particles.shape[0]
+        def resample(key, particles, log_weights):
+            resample_key, jitter_key = jax.random.split(key)
+            resampled = particles[resample_scheme(resample_key, log_weights, num_active)]
+            if jitter > 0.0:
+                resampled = resampled + _regularisation_noise(
+                    jitter_key, particles, log_weights, jitter, num_active
+                )
+            return resampled, uniform_log_weights(particles, num_active)
+
         if ess_threshold >= 1.0:
             do_resample = jnp.asarray(True)
             particles, log_weights = resample(key, particles, log_weights)
         else:
-            do_resample = ess < ess_threshold * num_particles
+            threshold = count_dependent(lambda count: ess_threshold * count, num_active, num_particles)
+            do_resample = ess < threshold
             particles, log_weights = jax.lax.cond(
                 do_resample, resample, lambda _, x, lw: (x, lw), key, particles, log_weights
             )
@@ -113,10 +135,14 @@ def sir(
     return BayesUpdate(init, apply)
 
 
-def _regularisation_noise(key, particles, log_weights, jitter):
-    """Gaussian noise ~ N(0, (jitter * N^(-1/(n+4)))^2 C_w), C_w the weighted covariance."""
+def _regularisation_noise(key, particles, log_weights, jitter, num_active=None):
+    """Gaussian noise ~ N(0, (jitter * k^(-1/(n+4)))^2 C_w), C_w the weighted covariance and k
+    the number of active particles (``num_active``; None: all N)."""
     num_particles, dim = particles.shape
     covariance = weighted_covariance(particles, log_weights)
-    bandwidth = num_particles ** (-1.0 / (dim + 4))
+    exponent = -1.0 / (dim + 4)
+    scale = jitter * num_particles**exponent
+    if num_active is not None:
+        scale = count_dependent(lambda count: jitter * count**exponent, num_active, num_particles)
     standard = jax.random.normal(key, particles.shape, particles.dtype)
-    return (jitter * bandwidth) * standard @ psd_sqrt(covariance).T
+    return scale * standard @ psd_sqrt(covariance).T
