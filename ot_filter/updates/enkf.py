@@ -156,10 +156,13 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         cross_cov = unbiased(anomalies.T @ predicted_anomalies)  # [n, m]
         innovations = jnp.where(rows, observation - predicted - noise, 0.0)  # [N, m]
         chol = jnp.linalg.cholesky(innovation_cov)
-        solved = jax.scipy.linalg.cho_solve((chol, True), innovations.T)
+        # K = Cov(X, h) (Cov(h) + R)^{-1}: solves against the n columns of Cov(X, h)^T, not the
+        # N innovations. (An [m, N] right-hand side made jaxlib's CPU batched triangular solve
+        # under vmap 60-150x slower for N >= 800 on 2 cores, and costs O(m^2 N) instead of O(m^2 n).)
+        gain = jax.scipy.linalg.cho_solve((chol, True), cross_cov.T).T  # [n, m]
         diagonal = jnp.diag(chol)
         condition = (jnp.max(diagonal) / jnp.min(diagonal)) ** 2  # cheap lower bound
-        return particles + (cross_cov @ solved).T, condition
+        return particles + innovations @ gain.T, condition
     # Simulation-based: Cov(Y) is estimated and may be singular (e.g. N <= m): eigh.
     keys = jax.random.split(key, num_particles)
     simulated = jax.vmap(model.sample_observation)(keys, particles)
