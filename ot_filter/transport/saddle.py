@@ -74,16 +74,28 @@ class Batch(NamedTuple):
     ybar: Array  # [B, m]  the observations simulated from Xbar^j (used by the EnKF layer only)
 
 
-def enkf_gain(x: Array, y: Array) -> Array:
-    """``K[n, m] = Cov(X, Y) (Cov(Y) + ridge I)^{-1}`` from the pairs ``x[B, n], y[B, m]``."""
-    num = x.shape[0]
-    _, x_anomalies = mean_and_anomalies(x)
-    _, y_anomalies = mean_and_anomalies(y)
+def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
+    """``K[n, m] = Cov(X, Y) (Cov(Y) + ridge I)^{-1}`` from the pairs ``x[B, n], y[B, m]``
+    (only the rows where ``active[B]`` is True, if given: a padded particle axis)."""
+    if active is None:
+        num = x.shape[0]
+        _, x_anomalies = mean_and_anomalies(x)
+        _, y_anomalies = mean_and_anomalies(y)
+    else:
+        num = jnp.sum(active).astype(x.dtype)
+        x_anomalies = _masked_anomalies(x, active, num)
+        y_anomalies = _masked_anomalies(y, active, num)
     cross = x_anomalies.T @ y_anomalies / (num - 1)
     cov_y = symmetrise(y_anomalies.T @ y_anomalies / (num - 1))
     ridge = GAIN_RIDGE * (1.0 + jnp.trace(cov_y) / cov_y.shape[0])
     chol = jnp.linalg.cholesky(cov_y + ridge * jnp.eye(cov_y.shape[0], dtype=cov_y.dtype))
     return jax.scipy.linalg.cho_solve((chol, True), cross.T).T
+
+
+def _masked_anomalies(values: Array, active: Array, num: Array) -> Array:
+    rows = active[:, None]
+    mean = jnp.sum(jnp.where(rows, values, 0.0), axis=0) / num
+    return jnp.where(rows, values - mean, 0.0)
 
 
 def transport_input(xbar: Array, y: Array, ybar: Array, gain: Array | None) -> Array:

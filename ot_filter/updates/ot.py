@@ -251,6 +251,7 @@ def ot(
         )
 
     def apply(key: Array, state: OTState, particles: Array, observation: Array, model: StateSpaceModel):
+        # Padding (log-weight -inf, see updates.base) is left out of every statistic and batch.
         n, m = state.standardisation.x_mean.shape[0], state.standardisation.y_mean.shape[0]
         num = state.log_weights.shape[0]
         if jnp.shape(particles) != (num, n):
@@ -264,7 +265,11 @@ def ot(
         num, n = particles.shape
         simulate_key, train_key, fallback_key, reset_key = jax.random.split(key, 4)
         simulated = jax.vmap(model.sample_observation)(jax.random.split(simulate_key, num), particles)
-        scaling = _standardisation(particles, simulated)
+        active = state.log_weights > -jnp.inf
+        num_active = jnp.sum(active)
+        # Active particles first (stable): mini-batches draw indices below num_active.
+        active_index = jnp.argsort(~active, stable=True)
+        scaling = _standardisation(particles, simulated, active)
         xs = (particles - scaling.x_mean) / scaling.x_scale
         ys = (simulated - scaling.y_mean) / scaling.y_scale
 
@@ -272,9 +277,9 @@ def ot(
         # standardised units, shrunk by sqrt(1 - h^2) so the mean and covariance are kept) with
         # observations drawn afresh at the jittered states, so that neither network can memorise
         # the N pairs. The trained map is applied to the original particles.
-        silverman = (4.0 / (n + 2)) ** (1.0 / (n + 4)) * num ** (-1.0 / (n + 4))
-        bandwidth = min(prior_smoothing * silverman, MAX_SMOOTHING_BANDWIDTH)
-        correlation_factor = correlation_cholesky(xs) if prior_smoothing else None
+        silverman = (4.0 / (n + 2)) ** (1.0 / (n + 4)) * num_active.astype(xs.dtype) ** (-1.0 / (n + 4))
+        bandwidth = jnp.minimum(prior_smoothing * silverman, MAX_SMOOTHING_BANDWIDTH)
+        correlation_factor = correlation_cholesky(xs, active) if prior_smoothing else None
 
         def simulate_standardised(sample_key, x_standard):
             x = x_standard * scaling.x_scale + scaling.x_mean
@@ -283,8 +288,8 @@ def ot(
 
         def sample_batch(batch_key):
             pair_key, copy_key, jitter_key, copy_jitter_key, y_key, ybar_key = jax.random.split(batch_key, 6)
-            pairs = jax.random.randint(pair_key, (batch_size,), 0, num)
-            copies = jax.random.randint(copy_key, (batch_size,), 0, num)
+            pairs = active_index[jax.random.randint(pair_key, (batch_size,), 0, num_active)]
+            copies = active_index[jax.random.randint(copy_key, (batch_size,), 0, num_active)]
             x, xbar = xs[pairs], xs[copies]
             if prior_smoothing:
                 x = smoothed_draw(jitter_key, x, bandwidth, correlation_factor)
@@ -303,32 +308,35 @@ def ot(
         iterations = jnp.maximum(floor_iterations, jnp.right_shift(first_iterations, halvings))
         training, trace = train(train_key, training, sample_batch, iterations)
         params = training.params
-        gain = enkf_gain(xs, ys) if enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
+        gain = enkf_gain(xs, ys, active) if enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
         observed = jnp.all(jnp.isfinite(observation))
         y_standard = jnp.where(observed, (observation - scaling.y_mean) / scaling.y_scale, 0.0)
         moved = _transport_standardised(params.transport, xs, y_standard, ys, gain)
 
         potential_values = potential_net.apply(params.potential, xs, ys)
-        spread = jnp.std(moved, axis=0)
+        spread = _masked_std(moved, active)
         diverged = (
             ~trace.finite
             | ~(jnp.abs(trace.smoothed_loss) <= divergence_threshold * n)
-            | ~jnp.all(jnp.isfinite(moved))
+            | ~jnp.all(jnp.isfinite(moved) | ~active[:, None])
             | ~(jnp.max(spread) <= MAX_POSTERIOR_SPREAD)
         )
         if concavity_points:
             checked = min(concavity_points, num)
+            points = active_index[:checked]
             eigenvalues = c_concavity_min_eigenvalue(
                 lambda x, y: potential_net.apply(params.potential, x, y),
-                xs[:checked], ys[:checked], concavity_step,
+                xs[points], ys[points], concavity_step,
             )
-            min_eigenvalue = jnp.min(eigenvalues)
-            violation = jnp.mean(eigenvalues < 0)
+            counted = jnp.arange(checked) < num_active
+            min_eigenvalue = jnp.min(jnp.where(counted, eigenvalues, jnp.inf))
+            violation = jnp.sum(counted & (eigenvalues < 0)) / jnp.minimum(checked, num_active)
         else:  # min over no points
             min_eigenvalue, violation = jnp.array(jnp.inf, particles.dtype), jnp.zeros((), particles.dtype)
 
         enkf_particles, _, _ = fallback.apply(
-            fallback_key, fallback.init(fallback_key, particles), particles, observation, model
+            fallback_key, fallback.init(fallback_key, particles)._replace(log_weights=state.log_weights),
+            particles, observation, model,
         )
         posterior = jnp.where(diverged, enkf_particles, moved * scaling.x_scale + scaling.x_mean)
         # A non-finite observation carries no information: the particles stay (run_filter skips
@@ -352,7 +360,7 @@ def ot(
             diverged=diverged,
             min_hessian_eigenvalue=_not_nan(min_eigenvalue),
             concavity_violation=_not_nan(violation),
-            potential_spread=_not_nan(jnp.std(potential_values)),
+            potential_spread=_not_nan(_masked_std(potential_values[:, None], active)[0]),
         )
         return posterior, state, info
 
@@ -404,9 +412,13 @@ def ot(
     return OTUpdate(init, apply, transport, potential)
 
 
-def correlation_cholesky(standardised: Array) -> Array:
-    """Cholesky factor ``[n, n]`` of the correlation matrix of standardised particles ``[N, n]``."""
+def correlation_cholesky(standardised: Array, active: Array | None = None) -> Array:
+    """Cholesky factor ``[n, n]`` of the correlation matrix of standardised particles ``[N, n]``
+    (the rows where ``active`` is True, if given)."""
     num, n = standardised.shape
+    if active is not None:
+        num = jnp.sum(active).astype(standardised.dtype)
+        standardised = jnp.where(active[:, None], standardised, 0.0)
     correlation = standardised.T @ standardised / num
     ridge = CORRELATION_RIDGE * jnp.eye(n, dtype=standardised.dtype)
     return jnp.linalg.cholesky(0.5 * (correlation + correlation.T) + ridge)
@@ -424,10 +436,19 @@ def _not_nan(value: Array) -> Array:
     return jnp.where(jnp.isnan(value), jnp.inf, value)
 
 
-def _standardisation(particles: Array, simulated: Array) -> Standardisation:
+def _masked_std(values: Array, active: Array) -> Array:
+    """Standard deviation ``[d]`` over the active rows of ``values[N, d]``."""
+    rows = active[:, None]
+    num = jnp.sum(active).astype(values.dtype)
+    mean = jnp.sum(jnp.where(rows, values, 0.0), axis=0) / num
+    return jnp.sqrt(jnp.sum(jnp.where(rows, (values - mean) ** 2, 0.0), axis=0) / num)
+
+
+def _standardisation(particles: Array, simulated: Array, active: Array) -> Standardisation:
     def mean_and_scale(values):
-        mean = jnp.mean(values, axis=0)
-        std = jnp.std(values, axis=0)
+        rows = active[:, None]
+        mean = jnp.sum(jnp.where(rows, values, 0.0), axis=0) / jnp.sum(active).astype(values.dtype)
+        std = _masked_std(values, active)
         # A constant coordinate stays constant: any positive scale will do.
         return mean, jnp.where(std > 0, std, jnp.ones_like(std))
 

@@ -1,0 +1,151 @@
+"""The chapter's Lorenz-63 experiment: components 1 and 3 observed, the OT filter against EnKF and SIR.
+
+Setting (../shared/paper/NOTES.md): sigma 10, rho 28, beta 8/3, Euler steps of dt = 0.01, one
+observation per step for 500 steps (t in (0, 5]), components 1 and 3 observed with noise variance
+10. The truth starts from N(25 * 1, 100 I) and follows the deterministic dynamics (as in the
+authors' script); the particles start from N(0, 100 I) and get process noise of std sqrt(0.1) per
+step. Every method, the EnKF included, uses the model's own observation noise (variance 10).
+
+Methods: ``enkf``, ``sir``, ``ot`` (OT filter without the EnKF layer) and ``ot_enkf`` (with it).
+Measured per simulation: MSE(t) of the ensemble mean, averaged over the 3 components; whether it
+is below 1 at every t > 1.5 (``settled``); compile and run seconds.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import numpy as np
+
+from ot_filter.experiments._common import compile_and_run, save_figure, stats
+from ot_filter.filtering import run_filter
+from ot_filter.model import simulate
+from ot_filter.models import lorenz63
+from ot_filter.updates import enkf, ot, sir
+
+METHODS = ("enkf", "sir", "ot", "ot_enkf")
+LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer"}
+COLOURS = {"enkf": "tab:blue", "sir": "tab:orange", "ot": "tab:green", "ot_enkf": "tab:purple"}
+TIME_STEP = 0.01
+SETTLE_TIME = 1.5
+MSE_TARGET = 1.0
+# The authors' OT filter for Lorenz-63: width 64, mini-batch 64, warm start, 1024 -> 64 schedule.
+OT_OPTIONS = {"num_iterations": (1024, 64), "width": 64, "batch_size": 64, "concavity_points": 0}
+_SETTING = dict(dt=TIME_STEP, integrator="euler", steps_per_observation=1, observed=(0, 2),
+                observation_noise_std=10.0**0.5, initial_std=10.0)
+
+
+def lorenz63_models():
+    """``(truth_model, filter_model)`` of the chapter's setting (see the module docstring)."""
+    truth = lorenz63(process_noise_std=0.0, initial_mean=(25.0, 25.0, 25.0), **_SETTING)
+    filtering = lorenz63(process_noise_std=0.1**0.5, initial_mean=(0.0, 0.0, 0.0), **_SETTING)
+    return truth, filtering
+
+
+def _updates(methods, ot_options):
+    options = dict(OT_OPTIONS, **(ot_options or {}))
+    builders = {
+        "enkf": lambda: enkf(),
+        "sir": lambda: sir(),
+        "ot": lambda: ot(**options),
+        "ot_enkf": lambda: ot(**dict(options, enkf_layer=True)),
+    }
+    unknown = [name for name in methods if name not in builders]
+    if unknown or not methods:
+        raise ValueError(f"methods must be a non-empty subset of {list(builders)}, got {list(methods)}")
+    return {name: builders[name]() for name in methods}
+
+
+def run_lorenz63(
+    key: jax.Array,
+    num_particles: int = 1000,
+    num_steps: int = 500,
+    num_simulations: int = 10,
+    methods: Sequence[str] = METHODS,
+    ot_options: dict | None = None,
+    save_every: int = 5,
+) -> dict:
+    """Runs every method on ``num_simulations`` independent truths (vmapped, one compiled program
+    per method). Returns ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``; the arrays hold
+    the first simulation's truth and the particles of every ``save_every``-th step for figures."""
+    truth_model, filter_model = lorenz63_models()
+    updates = _updates(methods, ot_options)
+    truth_key, filter_key = jax.random.split(key)
+    states, observations = jax.vmap(lambda k: simulate(k, truth_model, num_steps))(
+        jax.random.split(truth_key, num_simulations)
+    )
+    times = TIME_STEP * np.arange(1, num_steps + 1)
+    settled_from = int(np.searchsorted(times, SETTLE_TIME, side="right"))
+    summary = {"num_particles": num_particles, "num_steps": num_steps, "num_simulations": num_simulations,
+               "ot_options": {k: (list(v) if isinstance(v, tuple) else v)
+                              for k, v in dict(OT_OPTIONS, **(ot_options or {})).items()},
+               "settle_time": SETTLE_TIME, "mse_target": MSE_TARGET}
+    arrays = {"times": times, "states": np.asarray(states[0]), "observations": np.asarray(observations[0])}
+    for index, (name, update) in enumerate(updates.items()):
+        keys = jax.random.split(jax.random.fold_in(filter_key, index), num_simulations)
+
+        def one(k, y, update=update):
+            result = run_filter(k, filter_model, update, y, num_particles, save_every=save_every)
+            return result.mean, result.particles, getattr(result.info, "diverged", None)
+
+        (mean, particles, diverged), timing = compile_and_run(jax.vmap(one), keys, observations)
+        mse = np.mean((mean - np.asarray(states)) ** 2, axis=-1)  # [S, T]
+        late = mse[:, settled_from:].max(axis=1)
+        summary[name] = {
+            "mse_over_time": np.exp(np.log(mse).mean(axis=0)).round(4).tolist(),  # geometric mean
+            "mse_after_settle": stats(mse[:, settled_from:].mean(axis=1)),
+            "max_mse_after_settle_per_simulation": late.round(4).tolist(),
+            "settled_simulations": int(np.sum(late < MSE_TARGET)),
+            "compile_s": timing["compile_s"],
+            "run_s": timing["run_s"],
+            "seconds_per_step": timing["run_s"] / num_steps,
+            "seconds_per_step_and_simulation": timing["run_s"] / (num_steps * num_simulations),
+            "all_finite": bool(np.all(np.isfinite(mse))),
+        }
+        if diverged is not None:
+            summary[name]["diverged_steps"] = int(np.sum(diverged))
+        arrays[f"{name}_mse"] = mse
+        arrays[f"{name}_particles"] = particles[0]
+        arrays[f"{name}_mean"] = mean[0]
+    arrays["saved_times"] = times[save_every - 1::save_every]
+    return {"metrics": summary, "arrays": arrays}
+
+
+def plot_lorenz63(result: dict, out_dir: str) -> list[str]:
+    """The unobserved second component with particles (first simulation), and MSE over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary, arrays = result["metrics"], result["arrays"]
+    methods = [m for m in METHODS if m in summary]
+    times = arrays["times"]
+    paths = []
+    fig, axes = plt.subplots(len(methods), 1, figsize=(8, 2.2 * len(methods)), sharex=True, squeeze=False)
+    for ax, name in zip(axes[:, 0], methods):
+        particles = arrays[f"{name}_particles"][..., 1]  # [S, N]
+        shown = particles[:, :: max(1, particles.shape[1] // 100)]
+        ax.scatter(np.repeat(arrays["saved_times"], shown.shape[1]), shown.ravel(), s=1, alpha=0.2,
+                   color=COLOURS[name], label="particles")
+        ax.plot(times, arrays["states"][:, 1], "k", lw=1.2, label="truth")
+        ax.plot(times, arrays[f"{name}_mean"][:, 1], color="r", lw=0.8, ls="--", label="filter mean")
+        ax.set(ylabel="$x_2$ (unobserved)", title=LABELS[name], ylim=(-40, 40))
+        ax.legend(fontsize=7, loc="upper right", markerscale=5, ncol=3)
+    axes[-1, 0].set_xlabel("time t")
+    fig.suptitle(f"Lorenz-63, components 1 and 3 observed, N = {summary['num_particles']} (first simulation)")
+    paths.append(save_figure(fig, out_dir, "lorenz63_trajectory.png"))
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for name in methods:
+        ax.plot(times, summary[name]["mse_over_time"], color=COLOURS[name],
+                label=f"{LABELS[name]} ({summary[name]['settled_simulations']}/{summary['num_simulations']} "
+                      f"below {MSE_TARGET:g} after t = {SETTLE_TIME:g})")
+    ax.axhline(MSE_TARGET, color="k", lw=0.6, ls=":")
+    ax.axvline(SETTLE_TIME, color="k", lw=0.6, ls="--")
+    ax.set(yscale="log", xlabel="time t", ylabel="MSE of the ensemble mean (geometric mean over simulations)",
+           title=f"Lorenz-63: MSE over time, {summary['num_simulations']} simulations")
+    ax.legend(fontsize=8)
+    paths.append(save_figure(fig, out_dir, "lorenz63_mse.png"))
+    return paths

@@ -1,0 +1,87 @@
+"""The OT filter (warm-started OT updates inside ``run_filter``) and the dynamic-example harness."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import ot_filter as otf
+from ot_filter.experiments.dynamic_example import plot_dynamic_example, run_dynamic_example
+
+DYNAMIC = otf.models.squared_observation(dim=2)
+
+
+def test_a_diverging_training_falls_back_and_the_filter_completes():
+    # An absurd f learning rate makes every step's training blow up (J overflows to inf/NaN).
+    _, observations = otf.simulate(jax.random.key(0), DYNAMIC, 6)
+    update = otf.ot(num_iterations=(40, 20), potential_optimizer=optax.sgd(1e30), concavity_points=32)
+    result = otf.run_filter(jax.random.key(1), DYNAMIC, update, observations, num_particles=128)
+    assert np.all(np.asarray(result.info.diverged))
+    assert np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.particles))
+    # info never holds NaN (+inf marks a non-finite loss); the carried networks are healthy.
+    for leaf in jax.tree.leaves(result.info):
+        assert not np.any(np.isnan(np.asarray(leaf, dtype=float)))
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(result.final_state.training))
+    # Every step fell back to the EnKF: the spread stays that of an EnKF, no collapse or blow-up.
+    enkf_result = otf.run_filter(jax.random.key(1), DYNAMIC, otf.enkf(), observations, num_particles=128)
+    ratio = np.asarray(result.spread) / np.asarray(enkf_result.spread)
+    assert np.all((ratio > 0.7) & (ratio < 1.4))
+
+
+def test_vmapped_simulations_match_single_runs():
+    _, observations = jax.vmap(lambda k: otf.simulate(k, DYNAMIC, 3))(jax.random.split(jax.random.key(4), 2))
+    update = otf.ot(num_iterations=(16, 4), concavity_points=0)
+    keys = jax.random.split(jax.random.key(5), 2)
+    run = lambda k, y: otf.run_filter(k, DYNAMIC, update, y, num_particles=64, save_every=0).mean  # noqa: E731
+    batched = jax.jit(jax.vmap(run))(keys, observations)
+    for s in range(2):
+        np.testing.assert_allclose(batched[s], run(keys[s], observations[s]), rtol=1e-4, atol=1e-4)
+
+
+def test_dynamic_example_harness_writes_numbers_and_figures(tmp_path):
+    result = run_dynamic_example(
+        jax.random.key(0), num_particles=100, num_steps=12, num_simulations=2,
+        ot_options={"num_iterations": (64, 16)}, sir_reference=2000,
+    )
+    summary = result["metrics"]
+    json.dumps(summary)  # JSON-ready
+    for name in ("enkf", "sir", "ot"):
+        assert len(summary[name]["mmd_over_time"]) == 12 and summary[name]["all_finite"]
+        assert 0.0 < summary[name]["mmd_average"]["mean"] < 1.5
+    assert summary["reference_mode_imbalance"] < 1e-5 and summary["reference_lost_mass"] < 1e-3
+    assert summary["ot"]["diverged_steps"] == 0
+    assert summary["sir_reference"]["num_particles"] == 2000
+    paths = plot_dynamic_example(result, str(tmp_path))
+    assert len(paths) == 2 and all((tmp_path / p.split("/")[-1]).stat().st_size > 10_000 for p in paths)
+
+
+def test_ot_update_ignores_padding_of_a_masked_particle_axis():
+    # 48 active particles out of 64: the padding's values must not change anything active.
+    update = otf.ot(num_iterations=40, concavity_points=16, enkf_layer=True)
+    active = jnp.arange(64) < 48
+    base = jax.random.normal(jax.random.key(6), (64, 2))
+    y = jnp.array([1.0, 0.3])
+    outputs = []
+    for fill in (0.0, 1e3):
+        particles = jnp.where(active[:, None], base, fill)
+        state = update.init(jax.random.key(7), particles, DYNAMIC)
+        state = state._replace(log_weights=jnp.where(active, -jnp.log(48.0), -jnp.inf))
+        posterior, new_state, info = update.apply(jax.random.key(8), state, particles, y, DYNAMIC)
+        assert np.all(np.isneginf(new_state.log_weights[48:]))
+        outputs.append((posterior[:48], info.final_loss, info.min_hessian_eigenvalue, new_state.gain))
+    for a, b in zip(*outputs):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_padded_ot_filter_matches_the_unpadded_one():
+    # JAX's random streams are prefix-consistent, so k active particles out of N_max reproduce
+    # the k-particle filter with the same key (up to rounding in the masked reductions).
+    _, observations = otf.simulate(jax.random.key(9), DYNAMIC, 3)
+    update = otf.ot(num_iterations=(16, 4), concavity_points=0)
+    plain = otf.run_filter(jax.random.key(10), DYNAMIC, update, observations, num_particles=48, save_every=0)
+    padded = otf.run_filter(jax.random.key(10), DYNAMIC, update, observations, num_particles=64,
+                            save_every=0, num_active=48)
+    np.testing.assert_allclose(padded.mean, plain.mean, rtol=1e-3, atol=1e-3)
+    np.testing.assert_allclose(padded.final_particles[:48], plain.final_particles, rtol=1e-3, atol=1e-3)
