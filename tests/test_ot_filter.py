@@ -85,3 +85,22 @@ def test_padded_ot_filter_matches_the_unpadded_one():
                             save_every=0, num_active=48)
     np.testing.assert_allclose(padded.mean, plain.mean, rtol=1e-3, atol=1e-3)
     np.testing.assert_allclose(padded.final_particles[:48], plain.final_particles, rtol=1e-3, atol=1e-3)
+
+
+def test_an_ensemble_far_from_the_observation_is_caught_by_the_predictive_check():
+    # Frozen networks (the identity map) leave the prior N(0, I) in place while y = 50 asks for
+    # |x| near 7: the observation is ~35 predictive standard deviations off -> fallback.
+    frozen = otf.ot(num_iterations=5, potential_optimizer=optax.sgd(0.0),
+                    transport_optimizer=optax.sgd(0.0), prior_smoothing=0.0, concavity_points=0)
+    particles = jax.random.normal(jax.random.key(11), (256, 2))
+    state = frozen.init(jax.random.key(12), particles, DYNAMIC)
+    key = jax.random.key(13)
+    for y, flagged in ((jnp.array([50.0, 1.0]), True), (jnp.array([1.0, 1.0]), False)):
+        posterior, _, info = frozen.apply(key, state, particles, y, DYNAMIC)
+        assert bool(info.diverged) == flagged
+        assert (float(info.predictive_z) > 10.0) == flagged
+    enkf = otf.enkf()
+    expected, _, _ = enkf.apply(jax.random.split(key, 4)[2], enkf.init(None, particles), particles,
+                                jnp.array([50.0, 1.0]), DYNAMIC)
+    posterior, _, _ = frozen.apply(key, state, particles, jnp.array([50.0, 1.0]), DYNAMIC)
+    np.testing.assert_allclose(posterior, expected, atol=1e-5)

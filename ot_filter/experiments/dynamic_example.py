@@ -244,9 +244,10 @@ def _against_sir_reference(key, model, observations, filtered, num_reference, ba
         result = run(jax.random.fold_in(key, s)[None], observations[s:s + 1])
         particles, log_weights = result.particles[0], result.log_weights[0]
         reference_positive[s] = positive_mass(particles, log_weights)
-        picks = jax.vmap(lambda k, lw: jax.random.categorical(k, lw, shape=(subsample,)))(
-            jax.random.split(jax.random.fold_in(key, 10_000 + s), num_steps), log_weights
-        )
+        # Multinomial draws by inverting the CDF (categorical() would draw subsample x 10^5 Gumbels).
+        picks = jax.vmap(lambda k, lw: jnp.searchsorted(
+            jnp.cumsum(jnp.exp(lw)), jax.random.uniform(k, (subsample,)) * jnp.sum(jnp.exp(lw))
+        ).clip(0, num_reference - 1))(jax.random.split(jax.random.fold_in(key, 10_000 + s), num_steps), log_weights)
         reference_sample = jnp.take_along_axis(particles, picks[..., None], axis=1)  # [T, M, n]
         for name, (x, lw) in filtered.items():
             distances = jax.jit(jax.vmap(lambda a, w, b: mmd(a, b, bandwidth, x_weights=jnp.exp(w))))(

@@ -6,9 +6,22 @@ observation per step for 500 steps (t in (0, 5]), components 1 and 3 observed wi
 authors' script); the particles start from N(0, 100 I) and get process noise of std sqrt(0.1) per
 step. Every method, the EnKF included, uses the model's own observation noise (variance 10).
 
-Methods: ``enkf``, ``sir``, ``ot`` (OT filter without the EnKF layer) and ``ot_enkf`` (with it).
+Methods: ``enkf``, ``sir``, ``ot`` (OT filter without the EnKF layer) and ``ot_enkf`` (with it),
+and optionally a large SIR (``reference_particles``, e.g. 10^5) as the exact-Bayes level.
 Measured per simulation: MSE(t) of the ensemble mean, averaged over the 3 components; whether it
-is below 1 at every t > 1.5 (``settled``); compile and run seconds.
+is below 1 at every t > 1.5 (``settled``) and on average over t > 1.5; compile and run seconds.
+
+Note: "MSE below 1 at every t > 1.5" is out of reach of ANY filter here, exact Bayes included:
+with process noise 0.1 per step and two of three components observed with variance 10 the
+posterior variance is about 0.5-1 per component, so the squared error of the posterior mean
+exceeds 1 at a fraction of the times (a 10^5-particle SIR does in every simulation, at the same
+times as the other filters). The time average over t > 1.5 is the attainable criterion.
+
+OT settings (measured on 3 + 10 simulations): the package defaults with the 1024 -> 64 schedule
+(width 32, mini-batch 128) match the exact-Bayes level; the authors' width 64 / batch 64 is not
+better and 25% slower. With the EnKF layer, f needs the authors' Adam(1e-3): with the slower
+default f the learned correction extrapolates badly in the first steps (the prior N(0, 100 I) is
+far from the truth near 25) and the MSE sits at 300-700 for ~50 steps.
 """
 
 from __future__ import annotations
@@ -17,6 +30,7 @@ from typing import Sequence
 
 import jax
 import numpy as np
+import optax
 
 from ot_filter.experiments._common import compile_and_run, save_figure, stats
 from ot_filter.filtering import run_filter
@@ -25,13 +39,15 @@ from ot_filter.models import lorenz63
 from ot_filter.updates import enkf, ot, sir
 
 METHODS = ("enkf", "sir", "ot", "ot_enkf")
-LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer"}
-COLOURS = {"enkf": "tab:blue", "sir": "tab:orange", "ot": "tab:green", "ot_enkf": "tab:purple"}
+LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer", "reference": "SIR, large (exact Bayes)"}
+COLOURS = {"enkf": "tab:blue", "sir": "tab:orange", "ot": "tab:green", "ot_enkf": "tab:purple", "reference": "black"}
 TIME_STEP = 0.01
 SETTLE_TIME = 1.5
 MSE_TARGET = 1.0
-# The authors' OT filter for Lorenz-63: width 64, mini-batch 64, warm start, 1024 -> 64 schedule.
-OT_OPTIONS = {"num_iterations": (1024, 64), "width": 64, "batch_size": 64, "concavity_points": 0}
+# The OT filter: warm start, the authors' 1024 -> 64 schedule, otherwise the package defaults.
+OT_OPTIONS = {"num_iterations": (1024, 64), "concavity_points": 0}
+# With the EnKF layer, f learns at the authors' rate (see the module docstring).
+OT_ENKF_LAYER_OPTIONS = {"enkf_layer": True, "potential_optimizer": optax.adam(1e-3)}
 _SETTING = dict(dt=TIME_STEP, integrator="euler", steps_per_observation=1, observed=(0, 2),
                 observation_noise_std=10.0**0.5, initial_std=10.0)
 
@@ -49,7 +65,7 @@ def _updates(methods, ot_options):
         "enkf": lambda: enkf(),
         "sir": lambda: sir(),
         "ot": lambda: ot(**options),
-        "ot_enkf": lambda: ot(**dict(options, enkf_layer=True)),
+        "ot_enkf": lambda: ot(**dict(options, **OT_ENKF_LAYER_OPTIONS)),
     }
     unknown = [name for name in methods if name not in builders]
     if unknown or not methods:
@@ -65,12 +81,16 @@ def run_lorenz63(
     methods: Sequence[str] = METHODS,
     ot_options: dict | None = None,
     save_every: int = 5,
+    reference_particles: int = 0,
 ) -> dict:
     """Runs every method on ``num_simulations`` independent truths (vmapped, one compiled program
     per method). Returns ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``; the arrays hold
-    the first simulation's truth and the particles of every ``save_every``-th step for figures."""
+    the first simulation's truth and the particles of every ``save_every``-th step for figures.
+    ``reference_particles`` > 0 adds a SIR with that many particles (saved: its mean only)."""
     truth_model, filter_model = lorenz63_models()
     updates = _updates(methods, ot_options)
+    if reference_particles:
+        updates["reference"] = sir()
     truth_key, filter_key = jax.random.split(key)
     states, observations = jax.vmap(lambda k: simulate(k, truth_model, num_steps))(
         jax.random.split(truth_key, num_simulations)
@@ -80,13 +100,17 @@ def run_lorenz63(
     summary = {"num_particles": num_particles, "num_steps": num_steps, "num_simulations": num_simulations,
                "ot_options": {k: (list(v) if isinstance(v, tuple) else v)
                               for k, v in dict(OT_OPTIONS, **(ot_options or {})).items()},
+               "ot_enkf_layer_options": {"potential_optimizer": "optax.adam(1e-3)"},
                "settle_time": SETTLE_TIME, "mse_target": MSE_TARGET}
     arrays = {"times": times, "states": np.asarray(states[0]), "observations": np.asarray(observations[0])}
     for index, (name, update) in enumerate(updates.items()):
         keys = jax.random.split(jax.random.fold_in(filter_key, index), num_simulations)
 
-        def one(k, y, update=update):
-            result = run_filter(k, filter_model, update, y, num_particles, save_every=save_every)
+        is_reference = name == "reference"
+
+        def one(k, y, update=update, is_reference=is_reference):
+            result = run_filter(k, filter_model, update, y, reference_particles if is_reference else num_particles,
+                                save_every=0 if is_reference else save_every)
             return result.mean, result.particles, getattr(result.info, "diverged", None)
 
         (mean, particles, diverged), timing = compile_and_run(jax.vmap(one), keys, observations)
@@ -97,6 +121,8 @@ def run_lorenz63(
             "mse_after_settle": stats(mse[:, settled_from:].mean(axis=1)),
             "max_mse_after_settle_per_simulation": late.round(4).tolist(),
             "settled_simulations": int(np.sum(late < MSE_TARGET)),
+            "settled_on_average_simulations": int(np.sum(mse[:, settled_from:].mean(axis=1) < MSE_TARGET)),
+            "fraction_of_late_steps_below_target": float(np.mean(mse[:, settled_from:] < MSE_TARGET)),
             "compile_s": timing["compile_s"],
             "run_s": timing["run_s"],
             "seconds_per_step": timing["run_s"] / num_steps,
@@ -106,8 +132,9 @@ def run_lorenz63(
         if diverged is not None:
             summary[name]["diverged_steps"] = int(np.sum(diverged))
         arrays[f"{name}_mse"] = mse
-        arrays[f"{name}_particles"] = particles[0]
         arrays[f"{name}_mean"] = mean[0]
+        if not is_reference:
+            arrays[f"{name}_particles"] = particles[0]
     arrays["saved_times"] = times[save_every - 1::save_every]
     return {"metrics": summary, "arrays": arrays}
 
@@ -138,7 +165,7 @@ def plot_lorenz63(result: dict, out_dir: str) -> list[str]:
     paths.append(save_figure(fig, out_dir, "lorenz63_trajectory.png"))
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for name in methods:
+    for name in methods + (["reference"] if "reference" in summary else []):
         ax.plot(times, summary[name]["mse_over_time"], color=COLOURS[name],
                 label=f"{LABELS[name]} ({summary[name]['settled_simulations']}/{summary['num_simulations']} "
                       f"below {MSE_TARGET:g} after t = {SETTLE_TIME:g})")

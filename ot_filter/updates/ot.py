@@ -16,7 +16,9 @@ Diagnostics (``OTInfo``): the loss curve, a divergence test and the c-concavity 
 Divergence -- a non-finite loss or parameters, an exploding smoothed loss
 (|J| > ``divergence_threshold * n`` in standardised units, where a converged J is at most about
 2n), or transported particles that are non-finite or spread more than 10 prior standard
-deviations -- is reported in ``info.diverged``. That step then falls back to the perturbed-
+deviations, or an observation more than 10 standard deviations away from the observations
+simulated at the transported particles (a tight ensemble parked in the wrong place) -- is
+reported in ``info.diverged``. That step then falls back to the perturbed-
 observation EnKF update (``ot_filter.enkf()``) and the networks are re-initialised, so that a
 filter never carries garbage forward. Divergence without NaN is the common failure of this
 saddle point (f's scale grows and J climbs long before anything overflows), which is why the loss
@@ -69,6 +71,9 @@ MAX_POSTERIOR_SPREAD = 10.0
 # Cap of the smoothing bandwidth (standardised units): the particles then keep 19% of the
 # variance (sqrt(1 - 0.81)^2) and the jitter supplies the rest.
 MAX_SMOOTHING_BANDWIDTH = 0.9
+# The observation more than this many posterior-predictive standard deviations from the
+# posterior-predictive mean means a misplaced ensemble (a correct posterior gives a few at most).
+MAX_PREDICTIVE_Z = 10.0
 # Ridge on the particles' correlation matrix before its Cholesky factor (degenerate ensembles).
 CORRELATION_RIDGE = 1e-6
 
@@ -98,6 +103,8 @@ class OTInfo(NamedTuple):
     #                                (standardised coordinates; +inf when the check is off)
     concavity_violation: Array  # fraction of checked pairs where that eigenvalue is < 0 (0 if off)
     potential_spread: Array  # std of f(X^i, Y^i): its growth is the first sign of divergence
+    predictive_z: Array  # max over coordinates of |y - mean Y'| / std Y', Y' simulated at the
+    #                      transported particles (0 for a missing observation)
 
 
 class OTUpdate(NamedTuple):
@@ -315,11 +322,22 @@ def ot(
 
         potential_values = potential_net.apply(params.potential, xs, ys)
         spread = _masked_std(moved, active)
+        # Posterior predictive check: the observation must be plausible under observations
+        # simulated at the transported particles. A map that parks a tight ensemble far from
+        # the data (a loss and spread that look healthy) fails it.
+        moved_original = moved * scaling.x_scale + scaling.x_mean
+        predicted = jax.vmap(model.sample_observation)(
+            jax.random.split(jax.random.fold_in(key, 4), num), jnp.where(jnp.isfinite(moved_original), moved_original, 0.0)
+        )
+        predicted_mean = jnp.sum(jnp.where(active[:, None], predicted, 0.0), axis=0) / num_active
+        predictive_z = jnp.max(jnp.abs(observation - predicted_mean) / (_masked_std(predicted, active) + 1e-12))
+        predictive_z = jnp.where(observed, predictive_z, 0.0)
         diverged = (
             ~trace.finite
             | ~(jnp.abs(trace.smoothed_loss) <= divergence_threshold * n)
             | ~jnp.all(jnp.isfinite(moved) | ~active[:, None])
             | ~(jnp.max(spread) <= MAX_POSTERIOR_SPREAD)
+            | ~(predictive_z <= MAX_PREDICTIVE_Z)
         )
         if concavity_points:
             checked = min(concavity_points, num)
@@ -361,6 +379,7 @@ def ot(
             min_hessian_eigenvalue=_not_nan(min_eigenvalue),
             concavity_violation=_not_nan(violation),
             potential_spread=_not_nan(_masked_std(potential_values[:, None], active)[0]),
+            predictive_z=_not_nan(predictive_z),
         )
         return posterior, state, info
 
