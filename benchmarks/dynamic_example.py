@@ -20,6 +20,7 @@ import time
 
 import jax
 
+from ot_filter.experiments._common import write_text_atomic
 from ot_filter.experiments.dynamic_example import (
     plot_dynamic_example,
     plot_sweep,
@@ -97,10 +98,7 @@ def _print_sweep(m, axis):
 
 
 def _write(out, results):
-    tmp = os.path.join(out, "results.json.tmp")
-    with open(tmp, "w") as handle:
-        json.dump(results, handle, indent=1)
-    os.replace(tmp, os.path.join(out, "results.json"))
+    write_text_atomic(os.path.join(out, "results.json"), json.dumps(results, indent=1))
     lines = ["# Dynamic example (MMD to the exact posterior; mean +- s.e. over simulations)", ""]
     if "time" in results:
         m = results["time"]
@@ -135,10 +133,7 @@ def _write(out, results):
         if "timing" in m:
             lines.append("\nCompile / run seconds per method: " + ", ".join(
                 f"{n} {t['compile_s']:.1f} / {t['run_s']:.1f}" for n, t in m["timing"].items()))
-    tmp = os.path.join(out, "results.md.tmp")
-    with open(tmp, "w") as handle:
-        handle.write("\n".join(lines) + "\n")
-    os.replace(tmp, os.path.join(out, "results.md"))
+    write_text_atomic(os.path.join(out, "results.md"), "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import time
 import jax
 
 from ot_filter.experiments import plot_static_example, run_static_example
+from ot_filter.experiments._common import write_text_atomic
 
 
 def main():
@@ -50,10 +51,8 @@ def main():
 
 
 def _write(out, rows, seeds):
-    tmp = os.path.join(out, "results.json.tmp")
-    with open(tmp, "w") as handle:
-        json.dump({"device": str(jax.devices()[0]), "rows": rows}, handle, indent=1)
-    os.replace(tmp, os.path.join(out, "results.json"))
+    write_text_atomic(os.path.join(out, "results.json"),
+                      json.dumps({"device": str(jax.devices()[0]), "rows": rows}, indent=1))
     lines = [
         f"# Static example: W1 to the exact posterior for y = 1 (mean +- s.e. over {seeds} seeds)",
         "",
@@ -70,10 +69,7 @@ def _write(out, rows, seeds):
             f"{row['ot_success_seeds']}/{seeds} | {ot['joint_mmd']['mean']:.4f} | "
             f"{ot['reference_joint_mmd']['mean']:.4f} | {ot['diverged_seeds']} |"
         )
-    tmp = os.path.join(out, "results.md.tmp")
-    with open(tmp, "w") as handle:
-        handle.write("\n".join(lines) + "\n")
-    os.replace(tmp, os.path.join(out, "results.md"))
+    write_text_atomic(os.path.join(out, "results.md"), "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

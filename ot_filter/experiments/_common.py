@@ -50,6 +50,14 @@ def compile_and_run(function: Callable, *args) -> tuple[object, dict]:
     return jax.tree.map(np.asarray, output), {"compile_s": compile_s, "run_s": run_s}
 
 
+def write_text_atomic(path: str, text: str) -> None:
+    """Writes ``text`` to ``path`` via a temporary file and a rename: never a half-written file."""
+    tmp = path + ".tmp"
+    with open(tmp, "w") as handle:
+        handle.write(text)
+    os.replace(tmp, path)
+
+
 def save_figure(fig, out_dir: str, name: str) -> str:
     """Writes ``fig`` as ``out_dir/name`` atomically (temporary file, then rename); closes it."""
     import matplotlib.pyplot as plt
