@@ -2,10 +2,12 @@
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
 returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``ot``); ``run_filter`` composes them into a
-whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference.
+whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference. ``continuous`` holds the continuous-time part
+(``SDEModel``, Kalman-Bucy, the feedback particle filter and its gains).
 """
 
-from ot_filter import metrics, models, reference
+from ot_filter import continuous, metrics, models, reference
+from ot_filter.continuous import SDEModel
 from ot_filter.filtering import FilterResult, run_filter
 from ot_filter.kalman import KalmanResult, kalman_filter
 from ot_filter.model import StateSpaceModel, simulate
@@ -35,7 +37,9 @@ __all__ = [
     "OTUpdate",
     "SIRInfo",
     "SIRState",
+    "SDEModel",
     "StateSpaceModel",
+    "continuous",
     "enkf",
     "kalman_filter",
     "metrics",

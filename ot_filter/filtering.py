@@ -78,6 +78,7 @@ def run_filter(
     save_every: int = 1,
     initial_particles: Array | None = None,
     num_active: Array | int | None = None,
+    update_first: bool = False,
 ) -> FilterResult:
     """Filters a sequence of observations with a particle Bayes update.
 
@@ -95,6 +96,11 @@ def run_filter(
         scalar (it may be vmapped over); the other N - k are padding (see the module docstring).
         None: all N are active. A Python or concrete value out of range raises ValueError; a
         traced one out of range gives NaN ``mean`` and ``spread``.
+      update_first: assimilate y_t at the current particles, then propagate (static). This is
+        the order of a discretised continuous-time model (``continuous.discretise``), whose
+        increment dY_k is generated at X_{t_k}; ``mean`` and the saved particles are then those
+        of the predictive distribution at t_{k+1} given dY_0..dY_k, i.e. the continuous-time
+        filter at t_{k+1}.
 
     Returns:
       A ``FilterResult``.
@@ -132,7 +138,7 @@ def run_filter(
         save_every = 0  # no step would be saved
     result = _run_filter(
         key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
-        initial_particles, num_active,
+        initial_particles, num_active, bool(update_first),
     )
     saved_steps = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
     return result._replace(saved_steps=saved_steps)
@@ -158,9 +164,10 @@ def _check_num_active(num_active, num_particles: int) -> Array:
     return jnp.asarray(num_active, jnp.int32)
 
 
-@partial(jax.jit, static_argnames=("update", "num_particles", "save_every"))
+@partial(jax.jit, static_argnames=("update", "num_particles", "save_every", "update_first"))
 def _run_filter(
-    key, model, update, observations, num_particles, save_every, initial_particles, num_active
+    key, model, update, observations, num_particles, save_every, initial_particles, num_active,
+    update_first,
 ):
     init_key, state_key, steps_key = jax.random.split(key, 3)
     if initial_particles is None:
@@ -180,9 +187,14 @@ def _run_filter(
         particles, state = carry
         step_key, observation = inputs
         propagate_key, update_key = jax.random.split(step_key)
-        particles = jax.vmap(model.sample_transition)(
-            jax.random.split(propagate_key, num_particles), particles
-        )
+
+        def propagate(particles):
+            return jax.vmap(model.sample_transition)(
+                jax.random.split(propagate_key, num_particles), particles
+            )
+
+        if not update_first:
+            particles = propagate(particles)
         observed = jnp.all(jnp.isfinite(observation))
         safe_observation = jnp.where(observed, observation, jnp.zeros_like(observation))
 
@@ -197,39 +209,18 @@ def _run_filter(
             skip,
             update_key, state, particles, safe_observation,
         )
+        if update_first:
+            particles = propagate(particles)
         mean = jnp.exp(state.log_weights) @ particles
         spread = ensemble_spread(particles, state.log_weights)
         return (particles, state), (mean, spread, info, observed)
 
-    num_steps = observations.shape[0]
-    step_keys = jax.random.split(steps_key, num_steps)
-    carry = (particles, state)
-    if save_every == 0:
-        carry, outputs = jax.lax.scan(step, carry, (step_keys, observations))
-        saved_particles = saved_log_weights = None
-    else:
-        # Outer scan over blocks of `save_every` steps saves the particles at each block's end;
-        # a short remainder scan finishes the trajectory.
-        num_blocks = num_steps // save_every
-        blocked = num_blocks * save_every
-
-        def block(carry, inputs):
-            carry, outputs = jax.lax.scan(step, carry, inputs)
-            return carry, (outputs, carry[0], carry[1].log_weights)
-
-        def to_blocks(array):
-            return array[:blocked].reshape(num_blocks, save_every, *array.shape[1:])
-
-        block_inputs = (to_blocks(step_keys), to_blocks(observations))
-        carry, (outputs, saved_particles, saved_log_weights) = jax.lax.scan(
-            block, carry, block_inputs
-        )
-        outputs = jax.tree.map(lambda a: a.reshape(blocked, *a.shape[2:]), outputs)
-        if blocked < num_steps:
-            carry, tail = jax.lax.scan(
-                step, carry, (step_keys[blocked:], observations[blocked:])
-            )
-            outputs = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
+    step_keys = jax.random.split(steps_key, observations.shape[0])
+    carry, outputs, saved = scan_with_snapshots(
+        step, (particles, state), (step_keys, observations), save_every,
+        lambda carry: (carry[0], carry[1].log_weights),
+    )
+    saved_particles, saved_log_weights = saved if saved is not None else (None, None)
     mean, spread, info, observed = outputs
     if num_active is not None:
         mean = jnp.where(valid, mean, jnp.nan)
@@ -245,3 +236,32 @@ def _run_filter(
         final_particles=carry[0],
         final_state=carry[1],
     )
+
+
+def scan_with_snapshots(step, carry, inputs, save_every: int, snapshot):
+    """``lax.scan(step, carry, inputs)`` that also returns ``snapshot(carry)`` after every
+    ``save_every``-th step (stacked; None when ``save_every`` is 0) without storing the others.
+
+    An outer scan over blocks of ``save_every`` steps saves the snapshot at each block's end; a
+    short remainder scan finishes the trajectory. Returns ``(carry, outputs, snapshots)``.
+    """
+    if save_every == 0:
+        carry, outputs = jax.lax.scan(step, carry, inputs)
+        return carry, outputs, None
+    num_steps = jax.tree.leaves(inputs)[0].shape[0]
+    num_blocks = num_steps // save_every
+    blocked = num_blocks * save_every
+
+    def block(carry, block_inputs):
+        carry, outputs = jax.lax.scan(step, carry, block_inputs)
+        return carry, (outputs, snapshot(carry))
+
+    def to_blocks(array):
+        return array[:blocked].reshape(num_blocks, save_every, *array.shape[1:])
+
+    carry, (outputs, snapshots) = jax.lax.scan(block, carry, jax.tree.map(to_blocks, inputs))
+    outputs = jax.tree.map(lambda a: a.reshape(blocked, *a.shape[2:]), outputs)
+    if blocked < num_steps:
+        carry, tail = jax.lax.scan(step, carry, jax.tree.map(lambda a: a[blocked:], inputs))
+        outputs = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
+    return carry, outputs, snapshots

@@ -29,6 +29,7 @@ __all__ = [
     "GridFilter",
     "grid_filter",
     "grid_posterior",
+    "poisson_gain_1d",
     "squared_observation_filter",
     "squared_observation_posterior",
 ]
@@ -169,3 +170,23 @@ def squared_observation_filter(
 
     result = jax.vmap(filter_coordinate)(observations.T)
     return GridFilter(grid, result.masses, result.lost_mass)
+
+
+def poisson_gain_1d(density: GridDensity, h_values: Array) -> Array:
+    """The exact FPF gain K = phi' of a 1-D density on its grid, by quadrature.
+
+    The Poisson equation -(p phi')' = p (h - h_hat) integrates once to
+    K(x) = -(1 / p(x)) int_{-inf}^x (h(s) - h_hat) p(s) ds (trapezoid rule on the grid, with
+    h_hat = int h p). ``h_values``: h at the grid nodes ``[G]``. Returns K at the nodes ``[G]``;
+    where p is below 1e-300 relative to its peak (far tails) K is set to 0.
+    """
+    grid, p = density.grid, density.density
+    spacing = grid[1] - grid[0]
+
+    def cumulative(values):
+        return jnp.concatenate([jnp.zeros(1, values.dtype), jnp.cumsum(0.5 * (values[1:] + values[:-1]) * spacing)])
+
+    h_hat = cumulative(h_values * p)[-1]
+    flux = -cumulative((h_values - h_hat) * p)
+    tiny = jnp.max(p) * 1e-300 if p.dtype == jnp.float64 else jnp.max(p) * 1e-30
+    return jnp.where(p > tiny, flux / jnp.maximum(p, tiny), 0.0)

@@ -1,0 +1,151 @@
+"""The kernel (diffusion-map) gain of Taghvaei & Mehta for the feedback particle filter.
+
+With the Gaussian kernel g_ij = exp(-|X^i - X^j|^2 / (4 eps)), its density-normalised version
+k_ij = g_ij / sqrt(d_i d_j) (d_i = sum_l g_il) and the Markov matrix T_ij = k_ij / sum_l k_il,
+the Poisson equation's solution at the particles is the fixed point (mean-centred every sweep)
+
+    Phi = T Phi + eps (h - h_hat)
+
+(``lax.while_loop`` until the relative change is below ``tolerance``, warm-started from the previous
+time step's Phi). With r = Phi + eps h, the gain is the gradient of the smoothed T r:
+
+    K(x) = (1 / (2 eps)) sum_j T(x, X^j) (X^j - sum_l T(x, X^l) X^l) (r_j - sum_l T(x, X^l) r_l)^T
+
+(Taghvaei, de Wiljes, Mehta, Reich 2018, Alg. 2; ``../shared/paper/NOTES.md`` writes Phi where the
+algorithm has r = Phi + eps h: T r = Phi + eps h_hat, so grad(T r) approximates grad phi, while
+grad(T Phi) misses eps grad h, an O(eps) bias). The same formula at any x, with T(x, .) built from
+the particles' d_j, extends the gain off the particles; its derivative gives the Stratonovich
+correction.
+
+Cost and memory: O(N^2 (n + m)) per sweep and about ``4 N^2`` floats of memory (g, k, T and a
+temporary), 1.6 GB at N = 10^4 in float32; ``memory_limit_bytes`` bounds it (a ValueError before
+any work names N and the limit). The correction is evaluated in blocks of ``block_size`` points.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ot_filter.continuous.gains.base import Gain, GainOutput, stratonovich_correction
+
+Array = jax.Array
+
+__all__ = ["KernelGainInfo", "KernelGainState", "kernel_gain"]
+
+
+class KernelGainState(NamedTuple):
+    potential: Array  # [N, m] the last fixed point Phi (warm start)
+
+
+class KernelGainInfo(NamedTuple):
+    iterations: Array  # fixed-point sweeps used
+    residual: Array  # relative change of Phi at the last sweep
+    converged: Array  # bool, residual <= tolerance
+    fallback: Array  # bool, a non-finite gain was replaced by the constant gain
+
+
+MATRICES_IN_MEMORY = 4  # g, k, T and one temporary of shape [N, N]
+
+
+def kernel_gain(
+    epsilon: float = 0.1,
+    tolerance: float = 1e-4,
+    max_iterations: int = 1000,
+    memory_limit_bytes: float = 4 * 2**30,
+    block_size: int = 512,
+) -> Gain:
+    """Builds the diffusion-map gain.
+
+    Args:
+      epsilon: kernel bandwidth eps > 0, in squared state units (the bias is O(eps), the variance
+        grows as eps shrinks).
+      tolerance: stop the fixed point when |Phi_new - Phi| / |Phi_new| <= tolerance (> 0).
+      max_iterations: at most this many sweeps (``info.converged`` says if the tolerance was met).
+      memory_limit_bytes: refuse ensembles whose N x N matrices would exceed this.
+      block_size: particles per block in the Stratonovich correction.
+    """
+    epsilon = float(epsilon)
+    if not epsilon > 0:
+        raise ValueError(f"epsilon must be > 0, got {epsilon}")
+    tolerance = float(tolerance)
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    for name, value in (("max_iterations", max_iterations), ("block_size", block_size)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    if not float(memory_limit_bytes) > 0:
+        raise ValueError(f"memory_limit_bytes must be > 0, got {memory_limit_bytes}")
+
+    def check_memory(particles):
+        num = particles.shape[0]
+        needed = MATRICES_IN_MEMORY * num * num * particles.dtype.itemsize
+        if needed > memory_limit_bytes:
+            raise ValueError(
+                f"kernel_gain with N = {num} particles needs about {needed / 2**30:.1f} GiB for its "
+                f"N x N matrices, over memory_limit_bytes = {memory_limit_bytes / 2**30:.1f} GiB; "
+                f"use fewer particles, the constant or learned gain, or raise the limit"
+            )
+
+    def init(key, particles, h_values):
+        del key
+        check_memory(particles)
+        return KernelGainState(jnp.zeros_like(h_values))
+
+    def apply(key, state, particles, h_values):
+        del key
+        check_memory(particles)
+        num = particles.shape[0]
+        squared = jnp.sum(particles**2, axis=1)
+        distances = jnp.maximum(squared[:, None] + squared[None, :] - 2 * particles @ particles.T, 0.0)
+        g = jnp.exp(-distances / (4 * epsilon))
+        degree = jnp.sum(g, axis=1)  # >= 1: g_ii = 1
+        k = g / jnp.sqrt(degree[:, None] * degree[None, :])
+        markov = k / jnp.sum(k, axis=1, keepdims=True)
+        centred_h = h_values - jnp.mean(h_values, axis=0)
+        forcing = epsilon * centred_h
+
+        def sweep(carry):
+            potential, _, iteration = carry
+            new = markov @ potential + forcing
+            new = new - jnp.mean(new, axis=0)
+            change = jnp.sqrt(jnp.sum((new - potential) ** 2) / jnp.maximum(jnp.sum(new**2), 1e-30))
+            return new, change, iteration + 1
+
+        def not_done(carry):
+            _, change, iteration = carry
+            return (iteration < max_iterations) & (change > tolerance)
+
+        potential, residual, iterations = jax.lax.while_loop(
+            not_done, sweep, (state.potential, jnp.asarray(jnp.inf, particles.dtype), 0)
+        )
+        r = potential + forcing
+
+        def field(x):
+            gx = jnp.exp(-jnp.sum((particles - x) ** 2, axis=1) / (4 * epsilon))
+            kx = gx / jnp.sqrt(jnp.sum(gx) * degree)
+            tx = kx / jnp.sum(kx)
+            return ((tx[:, None] * (particles - tx @ particles)).T @ (r - tx @ r)) / (2 * epsilon)
+
+        # At the particles, the same formula with the matrix T.
+        x_bar = markov @ particles
+        r_bar = markov @ r
+        outer = (markov @ (particles[:, :, None] * r[:, None, :]).reshape(num, -1)).reshape(
+            num, particles.shape[1], r.shape[1]
+        )
+        gain = (outer - x_bar[:, :, None] * r_bar[:, None, :]) / (2 * epsilon)
+        correction = jax.lax.map(
+            lambda x: stratonovich_correction(field, x), particles, batch_size=block_size
+        )
+        finite = jnp.all(jnp.isfinite(gain)) & jnp.all(jnp.isfinite(correction))
+        fallback_gain = (particles - jnp.mean(particles, axis=0)).T @ centred_h / num
+        gain = jnp.where(finite, gain, fallback_gain[None])
+        correction = jnp.where(finite, correction, 0.0)
+        potential = jnp.where(finite, potential, 0.0)
+        info = KernelGainInfo(iterations, residual, residual <= tolerance, ~finite)
+        return GainOutput(gain, correction), KernelGainState(potential), info
+
+    return Gain(init, apply)

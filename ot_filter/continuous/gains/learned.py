@@ -1,0 +1,187 @@
+"""A learned gain: a neural network phi trained on the weak form of the Poisson equation.
+
+The chapter (Sec. "Relationship to the FPF Bayes update") shows that the first-order term of the
+OT objective for an observation increment is maximised by the FPF gain K = grad phi, where
+
+    phi = argmax_phi  E[ -0.5 |grad phi(X)|^2 + phi(X) (h(X) - h_hat) ],
+
+the weak form of -(1/p) div(p grad phi) = h - h_hat. Here phi: R^n -> R^m (one potential per
+observation component) is a residual MLP with a smooth activation (the correction needs second
+derivatives), trained on the particles with optax, warm-started across time steps, with the
+expectation replaced by the ensemble (or mini-batch) average.
+
+Scales: the network sees standardised particles z = (x - mean) / std and component-wise
+standardised h, and phi_k = s^2 std(h_k) psi_k(z) with s^2 the mean variance, so that psi = O(1)
+whatever the data's units.
+
+Robustness: the constant gain is the exact maximiser over linear phi, so its objective value is a
+floor any working network must reach (up to ``fallback_margin`` of it); a training whose
+objective is worse, or not finite, falls back to the constant gain for that step (``info``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import flax.linen as nn
+
+from ot_filter.continuous.gains.base import Gain, GainOutput, stratonovich_correction
+from ot_filter.transport.networks import ACTIVATIONS, ResidualMLP
+
+Array = jax.Array
+
+__all__ = ["LearnedGainInfo", "LearnedGainState", "learned_gain"]
+
+
+class LearnedGainState(NamedTuple):
+    params: Any
+    optimizer_state: Any
+    step: Array  # number of updates done (the first one trains longer)
+
+
+class LearnedGainInfo(NamedTuple):
+    objective: Array  # E[-0.5 |grad psi|^2 + psi (h - h_hat)] / normalisation, after training
+    constant_gain_objective: Array  # the same objective of the constant gain (the floor)
+    fallback: Array  # bool, the constant gain was used instead
+
+
+class _Potential(nn.Module):
+    width: int
+    num_blocks: int
+    out_features: int
+    activation: str
+
+    @nn.compact
+    def __call__(self, z):
+        return ResidualMLP(self.width, self.num_blocks, self.out_features, self.activation)(z)
+
+
+def learned_gain(
+    num_iterations: int | tuple[int, int] = (500, 50),
+    width: int = 32,
+    num_blocks: int = 1,
+    activation: str = "tanh",
+    optimizer: optax.GradientTransformation | None = None,
+    batch_size: int | None = None,
+    warm_start: bool = True,
+    fallback_margin: float = 0.05,
+    smoothing: float = 0.2,
+) -> Gain:
+    """Builds the learned gain.
+
+    Args:
+      num_iterations: optimiser steps per time step, or ``(first, later)``: ``first`` at the first
+        step (from scratch), ``later`` at the warm-started ones.
+      width, num_blocks, activation: the network (a smooth activation: tanh, silu, softplus, gelu).
+      optimizer: optax transformation (default Adam(1e-3)).
+      batch_size: particles per step (None: the whole ensemble).
+      warm_start: start from the previous step's weights and optimiser state.
+      fallback_margin: fall back to the constant gain when the trained objective is below the
+        constant gain's by more than this fraction of its magnitude.
+      smoothing: the expectation is taken over the particles jittered by this many standard
+        deviations (fresh Gaussian noise every step): on the bare empirical measure the objective
+        is unbounded (a narrow bump of phi at one particle has zero gradient there), so a flexible
+        network overfits outliers and the gain blows up; jittering makes it a proper density.
+    """
+    if isinstance(num_iterations, tuple):
+        first, later = num_iterations
+    else:
+        first = later = num_iterations
+    for name, value in (("num_iterations", first), ("num_iterations", later), ("width", width)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{name} must be a positive int (or a pair of them), got {value!r}")
+    if activation not in ACTIVATIONS or activation == "relu":
+        smooth = sorted(a for a in ACTIVATIONS if a != "relu")
+        raise ValueError(f"activation must be a smooth one of {smooth}, got {activation!r}")
+    if batch_size is not None and (not isinstance(batch_size, int) or batch_size < 2):
+        raise ValueError(f"batch_size must be None or an int >= 2, got {batch_size!r}")
+    if not float(smoothing) >= 0:
+        raise ValueError(f"smoothing must be >= 0, got {smoothing}")
+    if not float(fallback_margin) >= 0:
+        raise ValueError(f"fallback_margin must be >= 0, got {fallback_margin}")
+    optimizer = optax.adam(1e-3) if optimizer is None else optimizer
+
+    def make_network(m):
+        return _Potential(width, num_blocks, m, activation)
+
+    def init(key, particles, h_values):
+        network = make_network(h_values.shape[1])
+        params = network.init(key, jnp.zeros((1, particles.shape[1]), particles.dtype))
+        return LearnedGainState(params, optimizer.init(params), jnp.zeros((), jnp.int32))
+
+    def apply(key, state, particles, h_values):
+        num, n = particles.shape
+        m = h_values.shape[1]
+        network = make_network(m)
+        mean = jnp.mean(particles, axis=0)
+        std = jnp.maximum(jnp.std(particles, axis=0), 1e-12)
+        mean_variance = jnp.mean(std**2)
+        centred_h = h_values - jnp.mean(h_values, axis=0)
+        h_std = jnp.maximum(jnp.std(h_values, axis=0), 1e-12)
+        normalised_h = centred_h / h_std
+        ratio = jnp.sqrt(mean_variance) / std  # d psi / d x in units where phi ~ s^2 std(h) psi
+
+        def psi(params, z):
+            return network.apply(params, z[None])[0]  # [m]
+
+        def objective(params, z, hn):
+            jac = jax.vmap(jax.jacfwd(lambda zz: psi(params, zz)))(z)  # [B, m, n] d psi / dz
+            scaled = jac * ratio
+            values = jax.vmap(lambda zz: psi(params, zz))(z)  # [B, m]
+            return jnp.mean(-0.5 * jnp.sum(scaled**2, axis=(1, 2)) + jnp.sum(values * hn, axis=1))
+
+        z_all = (particles - mean) / std
+        params = state.params
+        opt_state = state.optimizer_state
+        if not warm_start:
+            params = init(jax.random.fold_in(key, 1), particles, h_values).params
+            opt_state = optimizer.init(params)
+        trips = jnp.where(state.step == 0, first, later)
+
+        def train_step(i, carry):
+            params, opt_state = carry
+            step_key = jax.random.fold_in(key, i)
+            if batch_size is None:
+                z, hn = z_all, normalised_h
+            else:
+                index = jax.random.choice(step_key, num, (batch_size,), replace=False)
+                z, hn = z_all[index], normalised_h[index]
+            z = z + smoothing * jax.random.normal(jax.random.fold_in(step_key, 1), z.shape, z.dtype)
+            grads = jax.grad(lambda p: -objective(p, z, hn))(params)
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+            return optax.apply_updates(params, updates), opt_state
+
+        params, opt_state = jax.lax.fori_loop(0, trips, train_step, (params, opt_state))
+        value = objective(params, z_all, normalised_h)
+        # The constant gain is the best linear phi: its objective is 0.5 |Cov(x / s, h_n)|^2 in
+        # these units (s^2 the mean variance).
+        linear = (particles - mean).T @ normalised_h / (num * jnp.sqrt(mean_variance))  # [n, m]
+        constant_value = 0.5 * jnp.sum(linear**2)
+        scale = mean_variance * h_std  # [m]: phi_k = s^2 std(h_k) psi_k
+
+        def field(x):
+            jac = jax.jacfwd(lambda xx: psi(params, (xx - mean) / std))(x)  # [m, n]
+            return (jac * scale[:, None]).T  # [n, m]
+
+        gain = jax.vmap(field)(particles)
+        correction = jax.vmap(lambda x: stratonovich_correction(field, x))(particles)
+        constant = (particles - mean).T @ centred_h / num
+        usable = (
+            jnp.isfinite(value)
+            & (value >= constant_value - fallback_margin * jnp.abs(constant_value))
+            & jnp.all(jnp.isfinite(gain))
+            & jnp.all(jnp.isfinite(correction))
+        )
+        gain = jnp.where(usable, gain, constant[None])
+        correction = jnp.where(usable, correction, 0.0)
+        # A failed training restarts from its last finite weights next step.
+        params = jax.tree.map(lambda new, old: jnp.where(jnp.isfinite(value), new, old), params, state.params)
+        new_state = LearnedGainState(params, opt_state, state.step + 1)
+        info = LearnedGainInfo(value, constant_value, ~usable)
+        return GainOutput(gain, correction), new_state, info
+
+    return Gain(init, apply)
