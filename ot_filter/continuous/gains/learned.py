@@ -14,9 +14,11 @@ Scales: the network sees standardised particles z = (x - mean) / std and compone
 standardised h, and phi_k = s^2 std(h_k) psi_k(z) with s^2 the mean variance, so that psi = O(1)
 whatever the data's units.
 
-Robustness: the constant gain is the exact maximiser over linear phi, so its objective value is a
-floor any working network must reach (up to ``fallback_margin`` of it); a training whose
-objective is worse, or not finite, falls back to the constant gain for that step (``info``).
+Robustness: after training, the objective is evaluated on freshly jittered particles with each
+psi_k rescaled by its best multiple (a free line search). The constant gain is the exact maximiser
+over linear phi, so its objective value is a floor any working network must reach (up to
+``fallback_margin`` of it); a network below it (diverged, or overfitting single particles), or
+not finite, is replaced by the constant gain for that step (``info.fallback``).
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ class LearnedGainState(NamedTuple):
 
 
 class LearnedGainInfo(NamedTuple):
-    objective: Array  # E[-0.5 |grad psi|^2 + psi (h - h_hat)] / normalisation, after training
+    objective: Array  # max_c E[-0.5 |grad c psi|^2 + c psi (h - h_hat)] on fresh jittered points
     constant_gain_objective: Array  # the same objective of the constant gain (the floor)
     fallback: Array  # bool, the constant gain was used instead
 
@@ -135,16 +137,17 @@ def learned_gain(
             return jnp.mean(-0.5 * jnp.sum(scaled**2, axis=(1, 2)) + jnp.sum(values * hn, axis=1))
 
         z_all = (particles - mean) / std
+        train_key, check_key, init_key = jax.random.split(key, 3)
         params = state.params
         opt_state = state.optimizer_state
         if not warm_start:
-            params = init(jax.random.fold_in(key, 1), particles, h_values).params
+            params = init(init_key, particles, h_values).params
             opt_state = optimizer.init(params)
         trips = jnp.where(state.step == 0, first, later)
 
         def train_step(i, carry):
             params, opt_state = carry
-            step_key = jax.random.fold_in(key, i)
+            step_key = jax.random.fold_in(train_key, i)
             if batch_size is None:
                 z, hn = z_all, normalised_h
             else:
@@ -156,12 +159,23 @@ def learned_gain(
             return optax.apply_updates(params, updates), opt_state
 
         params, opt_state = jax.lax.fori_loop(0, trips, train_step, (params, opt_state))
-        value = objective(params, z_all, normalised_h)
+        # Validation on a fresh jitter, and the best multiple c_k of each psi_k there: the
+        # objective along psi -> c psi is c B - c^2 A / 2, maximised at c = B / A with value
+        # B^2 / (2 A). A network that overfits single particles (large gradients between them) or
+        # diverged gets a small c and a low value, and the constant-gain floor below catches it.
+        z_check = z_all + smoothing * jax.random.normal(check_key, z_all.shape, z_all.dtype)
+        jac = jax.vmap(jax.jacfwd(lambda zz: psi(params, zz)))(z_check) * ratio  # [N, m, n]
+        psi_values = jax.vmap(lambda zz: psi(params, zz))(z_check)  # [N, m]
+        curvature = jnp.mean(jnp.sum(jac**2, axis=2), axis=0)  # A_k
+        correlation = jnp.mean(psi_values * normalised_h, axis=0)  # B_k
+        healthy = jnp.isfinite(curvature) & jnp.isfinite(correlation) & (curvature > 0)
+        multiplier = jnp.where(healthy, correlation / jnp.where(healthy, curvature, 1.0), 0.0)
+        value = jnp.sum(jnp.where(healthy, 0.5 * multiplier * correlation, -jnp.inf))
         # The constant gain is the best linear phi: its objective is 0.5 |Cov(x / s, h_n)|^2 in
         # these units (s^2 the mean variance).
         linear = (particles - mean).T @ normalised_h / (num * jnp.sqrt(mean_variance))  # [n, m]
         constant_value = 0.5 * jnp.sum(linear**2)
-        scale = mean_variance * h_std  # [m]: phi_k = s^2 std(h_k) psi_k
+        scale = mean_variance * h_std * multiplier  # [m]: phi_k = s^2 std(h_k) c_k psi_k
 
         def field(x):
             jac = jax.jacfwd(lambda xx: psi(params, (xx - mean) / std))(x)  # [m, n]
@@ -179,7 +193,13 @@ def learned_gain(
         gain = jnp.where(usable, gain, constant[None])
         correction = jnp.where(usable, correction, 0.0)
         # A failed training restarts from its last finite weights next step.
-        params = jax.tree.map(lambda new, old: jnp.where(jnp.isfinite(value), new, old), params, state.params)
+        finite = jnp.isfinite(value)
+
+        def keep_finite(new, old):
+            return jnp.where(finite, new, old)
+
+        params = jax.tree.map(keep_finite, params, state.params)
+        opt_state = jax.tree.map(keep_finite, opt_state, state.optimizer_state)
         new_state = LearnedGainState(params, opt_state, state.step + 1)
         info = LearnedGainInfo(value, constant_value, ~usable)
         return GainOutput(gain, correction), new_state, info
