@@ -10,9 +10,12 @@ and this module runs the exact Kalman filter of that chain:
              P+ = (I - K H dt) P (I - K H dt)^T + K R K^T dt          (Joseph form)
     predict  m = (I + A dt) m+,   P = (I + A dt) P+ (I + A dt)^T + B B^T dt.
 
-It is the exact posterior of the discretised model (what a particle filter on the same increments
-converges to as N grows) and tends to the Kalman-Bucy filter at O(dt) as dt -> 0; its gain
-P H^T S^{-1} is the Kalman-Bucy gain P H^T R^{-1} up to O(dt).
+It is the exact posterior of the discretised model (what SIR or the EnKF on ``discretise(model,
+dt)`` converge to as N grows) and tends to the Kalman-Bucy filter at O(dt) as dt -> 0; its gain
+P H^T S^{-1} is the Kalman-Bucy gain P H^T R^{-1} up to O(dt). The constant-gain FPF is a
+different O(dt) discretisation of the same filter: as N grows it converges to its own mean-field
+recursion (in ``tests/test_continuous.py``), which differs from this one by O(dt) (measured in
+``benchmarks/fpf_linear_convergence.py``).
 """
 
 from __future__ import annotations

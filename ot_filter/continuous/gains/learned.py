@@ -148,10 +148,10 @@ def learned_gain(
         def train_step(i, carry):
             params, opt_state = carry
             step_key = jax.random.fold_in(train_key, i)
-            if batch_size is None:
+            if batch_size is None or batch_size >= num:
                 z, hn = z_all, normalised_h
             else:
-                index = jax.random.choice(step_key, num, (batch_size,), replace=False)
+                index = jax.random.choice(step_key, num, (min(batch_size, num),), replace=False)
                 z, hn = z_all[index], normalised_h[index]
             z = z + smoothing * jax.random.normal(jax.random.fold_in(step_key, 1), z.shape, z.dtype)
             grads = jax.grad(lambda p: -objective(p, z, hn))(params)
