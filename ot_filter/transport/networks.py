@@ -29,7 +29,7 @@ ACTIVATIONS: dict[str, Callable[[Array], Array]] = {
 }
 
 
-class ResidualMLP(nn.Module):
+class _ResidualMLP(nn.Module):
     width: int
     num_blocks: int
     out_features: int
@@ -58,7 +58,7 @@ class PotentialNetwork(nn.Module):
     @nn.compact
     def __call__(self, x: Array, y: Array) -> Array:
         inputs = jnp.concatenate([x, y], axis=-1)
-        return ResidualMLP(self.width, self.num_blocks, 1, self.activation)(inputs)[..., 0]
+        return _ResidualMLP(self.width, self.num_blocks, 1, self.activation)(inputs)[..., 0]
 
 
 class TransportNetwork(nn.Module):
@@ -71,5 +71,9 @@ class TransportNetwork(nn.Module):
     @nn.compact
     def __call__(self, x: Array, y: Array) -> Array:
         inputs = jnp.concatenate([x, y], axis=-1)
-        mlp = ResidualMLP(self.width, self.num_blocks, x.shape[-1], self.activation, zero_output=True)
+        mlp = _ResidualMLP(self.width, self.num_blocks, x.shape[-1], self.activation, zero_output=True)
         return x + mlp(inputs)
+
+
+# Public name (flax names parameters after the class, so the class keeps its original name).
+ResidualMLP = _ResidualMLP
