@@ -176,17 +176,28 @@ def poisson_gain_1d(density: GridDensity, h_values: Array) -> Array:
     """The exact FPF gain K = phi' of a 1-D density on its grid, by quadrature.
 
     The Poisson equation -(p phi')' = p (h - h_hat) integrates once to
-    K(x) = -(1 / p(x)) int_{-inf}^x (h(s) - h_hat) p(s) ds (trapezoid rule on the grid, with
-    h_hat = int h p). ``h_values``: h at the grid nodes ``[G]``. Returns K at the nodes ``[G]``;
-    where p is below 1e-300 relative to its peak (far tails) K is set to 0.
+    K(x) = -(1 / p(x)) int_{-inf}^x (h(s) - h_hat) p(s) ds = (1 / p(x)) int_x^inf (...) ds
+    (trapezoid rule on the grid, h_hat = int h p / int p). Each node uses the integral over the
+    nearer tail (less than half the mass): dividing a difference of two O(1) integrals by the tiny
+    p of the far tail would magnify their rounding. ``h_values``: h at the grid nodes ``[G]``.
+    Returns K at the nodes ``[G]``; where p is below 1e-300 (float64; 1e-30 in float32) relative
+    to its peak (far tails) K is set to 0.
     """
     grid, p = density.grid, density.density
     spacing = grid[1] - grid[0]
 
-    def cumulative(values):
-        return jnp.concatenate([jnp.zeros(1, values.dtype), jnp.cumsum(0.5 * (values[1:] + values[:-1]) * spacing)])
+    def cumulative(values):  # int_{grid[0]}^{grid[i]}
+        pieces = 0.5 * (values[1:] + values[:-1]) * spacing
+        return jnp.concatenate([jnp.zeros(1, values.dtype), jnp.cumsum(pieces)])
 
-    h_hat = cumulative(h_values * p)[-1]
-    flux = -cumulative((h_values - h_hat) * p)
+    def cumulative_from_right(values):  # int_{grid[i]}^{grid[-1]}
+        return cumulative(values[::-1])[::-1]
+
+    mass = cumulative(p)
+    h_hat = cumulative(h_values * p)[-1] / mass[-1]
+    forcing = (h_values - h_hat) * p
+    flux = jnp.where(
+        mass <= 0.5 * mass[-1], -cumulative(forcing), cumulative_from_right(forcing)
+    )
     tiny = jnp.max(p) * 1e-300 if p.dtype == jnp.float64 else jnp.max(p) * 1e-30
     return jnp.where(p > tiny, flux / jnp.maximum(p, tiny), 0.0)

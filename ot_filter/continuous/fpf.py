@@ -46,6 +46,8 @@ class FPFResult(NamedTuple):
       saved_steps: ``[S]`` NumPy int array of step indices (0-based, after that increment).
       final_particles: ``[N, n]``.
       final_state: the gain's state after the last step.
+      rejected_updates: ``[T]`` int, particles whose filter update was non-finite at that step
+        (they keep their propagation and skip the update; 0 in a healthy run).
     """
 
     mean: Array
@@ -56,6 +58,7 @@ class FPFResult(NamedTuple):
     saved_steps: np.ndarray
     final_particles: Array
     final_state: Any
+    rejected_updates: Array
 
 
 def fpf_step(
@@ -68,7 +71,11 @@ def fpf_step(
     dt,
     stratonovich: bool = True,
 ) -> tuple[Array, Any, Any]:
-    """One FPF step of ``particles[N, n]`` with ``increment[m]``: returns (particles, state, info)."""
+    """One FPF step of ``particles[N, n]`` with ``increment[m]``.
+
+    Returns (particles, state, info, rejected): ``rejected`` counts the particles whose update was
+    non-finite (a gain blow-up): they skip the update rather than poison the ensemble with NaN.
+    """
     gain_key, noise_key = jax.random.split(key)
     std = jnp.asarray(model.observation_noise_std, particles.dtype)
     h_values = jax.vmap(model.observation_function)(particles) / std  # whitened [N, m]
@@ -80,11 +87,14 @@ def fpf_step(
     if stratonovich:
         update = update + output.correction * dt
     update = jnp.where(observed, update, 0.0)
+    finite = jnp.all(jnp.isfinite(update), axis=1, keepdims=True)
+    update = jnp.where(finite, update, 0.0)
     b_shape = jax.eval_shape(model.diffusion, particles[0]).shape
     noise = jax.random.normal(noise_key, (particles.shape[0], b_shape[-1]), particles.dtype)
     diffusion = jax.vmap(lambda x, xi: diffusion_increment(model, x, xi))(particles, noise)
     drift = jax.vmap(model.drift)(particles)
-    return particles + drift * dt + diffusion * jnp.sqrt(dt) + update, state, info
+    particles = particles + drift * dt + diffusion * jnp.sqrt(dt) + update
+    return particles, state, info, jnp.sum(~finite)
 
 
 def run_fpf(
@@ -155,16 +165,16 @@ def _run_fpf(key, model, gain, increments, dt, num_particles, save_every, initia
     def step(carry, inputs):
         particles, state = carry
         step_key, increment = inputs
-        particles, state, info = fpf_step(
+        particles, state, info, rejected = fpf_step(
             step_key, model, gain, state, particles, increment, dt, stratonovich
         )
         mean = jnp.mean(particles, axis=0)
         variance = jnp.var(particles, axis=0, ddof=1)
-        return (particles, state), (mean, variance, info, jnp.all(jnp.isfinite(increment)))
+        return (particles, state), (mean, variance, info, jnp.all(jnp.isfinite(increment)), rejected)
 
     keys = jax.random.split(steps_key, increments.shape[0])
     carry, outputs, saved = scan_with_snapshots(
         step, (particles, state), (keys, increments), save_every, lambda carry: carry[0]
     )
-    mean, variance, info, observed = outputs
-    return FPFResult(mean, variance, info, observed, saved, None, carry[0], carry[1])
+    mean, variance, info, observed, rejected = outputs
+    return FPFResult(mean, variance, info, observed, saved, None, carry[0], carry[1], rejected)

@@ -6,6 +6,7 @@ from ot_filter.continuous.gains.base import (
     GainOutput,
     constant_gain,
     function_gain,
+    gain_and_correction,
     stratonovich_correction,
 )
 from ot_filter.continuous.gains.kernel import KernelGainInfo, KernelGainState, kernel_gain
@@ -21,6 +22,7 @@ __all__ = [
     "LearnedGainState",
     "constant_gain",
     "function_gain",
+    "gain_and_correction",
     "kernel_gain",
     "learned_gain",
     "stratonovich_correction",

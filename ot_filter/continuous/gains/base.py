@@ -24,7 +24,8 @@ import jax.numpy as jnp
 
 Array = jax.Array
 
-__all__ = ["Gain", "GainOutput", "ConstantGainInfo", "constant_gain", "function_gain", "stratonovich_correction"]
+__all__ = ["Gain", "GainOutput", "ConstantGainInfo", "constant_gain", "function_gain", "gain_and_correction",
+           "stratonovich_correction"]
 
 
 class GainOutput(NamedTuple):
@@ -41,15 +42,21 @@ class ConstantGainInfo(NamedTuple):
     gain_norm: Array  # Frobenius norm of the gain (mean over particles for a varying gain)
 
 
-def stratonovich_correction(field: Callable[[Array], Array], x: Array) -> Array:
-    """``0.5 sum_k (D K_k)(x) K_k(x)`` for a gain field ``x[n] -> K(x)[n, m]`` (one point)."""
+def gain_and_correction(field: Callable[[Array], Array], x: Array) -> tuple[Array, Array]:
+    """``(K(x)[n, m], 0.5 sum_k (D K_k)(x) K_k(x) [n])`` for a gain field ``x[n] -> K(x)[n, m]``
+    (one point): the field is evaluated once and differentiated along its own columns."""
     value = field(x)
 
     def directional_derivative(direction):
         return jax.jvp(field, (x,), (direction,))[1]  # (D K)(x) . direction, [n, m]
 
     derivatives = jax.vmap(directional_derivative)(value.T)  # [m, n, m]: k-th direction K_k
-    return 0.5 * jnp.einsum("knk->n", derivatives)
+    return value, 0.5 * jnp.einsum("knk->n", derivatives)
+
+
+def stratonovich_correction(field: Callable[[Array], Array], x: Array) -> Array:
+    """``0.5 sum_k (D K_k)(x) K_k(x)`` for a gain field ``x[n] -> K(x)[n, m]`` (one point)."""
+    return gain_and_correction(field, x)[1]
 
 
 def _centred(values: Array) -> Array:
@@ -86,8 +93,7 @@ def function_gain(field: Callable[[Array], Array]) -> Gain:
 
     def apply(key, state, particles, h_values):
         del key, h_values
-        gain = jax.vmap(field)(particles)
-        correction = jax.vmap(lambda x: stratonovich_correction(field, x))(particles)
+        gain, correction = jax.vmap(lambda x: gain_and_correction(field, x))(particles)
         norm = jnp.mean(jnp.sqrt(jnp.sum(gain**2, axis=(1, 2))))
         return GainOutput(gain, correction), state, ConstantGainInfo(norm)
 

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ot_filter.continuous.gains.base import Gain, GainOutput, stratonovich_correction
+from ot_filter.continuous.gains.base import Gain, GainOutput, gain_and_correction
 
 Array = jax.Array
 
@@ -49,7 +49,7 @@ class KernelGainInfo(NamedTuple):
     fallback: Array  # bool, the constant gain was used (no convergence, or a non-finite gain)
 
 
-MATRICES_IN_MEMORY = 4  # g, k, T and one temporary of shape [N, N]
+MATRICES_IN_MEMORY = 4  # g, k and up to two temporaries of shape [N, N]
 
 
 def kernel_gain(
@@ -58,7 +58,7 @@ def kernel_gain(
     max_iterations: int = 500,
     memory_limit_bytes: float = 4 * 2**30,
     block_size: int = 512,
-    damping: float = 0.0,
+    damping: float = 0.01,
 ) -> Gain:
     """Builds the diffusion-map gain.
 
@@ -70,8 +70,15 @@ def kernel_gain(
         the tolerance then uses the constant gain (``info.fallback``).
       memory_limit_bytes: refuse ensembles whose N x N matrices would exceed this.
       block_size: particles per block in the Stratonovich correction.
-      damping: solve ((1 + damping) D - k) Phi = eps D (h - h_hat), which bounds Phi on nearly
-        disconnected ensembles at a relative gain bias of about damping / eps (0: none).
+      damping: solve ((1 + damping eps) D - k) Phi = eps D (h - h_hat), i.e. the Poisson equation
+        (-L + damping) phi = h - h_hat with a small shift (a discount, in Markov-chain terms). A
+        particle the kernel barely connects to the rest (a tail particle across an empty gap) is
+        an almost closed component of the graph, on which the unshifted equation has no bounded
+        solution: Phi there and the gain of its neighbours blow up and throw particles far off
+        (measured: non-finite runs at N = 200, eps = 0.1 on dY = X^2 dt + dW). The shift bounds
+        Phi by |h - h_hat| / damping at a gain shrinkage of damping / lambda for an
+        eigenfunction of -L with eigenvalue lambda (1 % for the Gaussian, h = x case at the
+        default; 0: none).
     """
     epsilon = float(epsilon)
     if not epsilon > 0:
@@ -79,6 +86,9 @@ def kernel_gain(
     tolerance = float(tolerance)
     if not tolerance > 0:
         raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    damping = float(damping)
+    if not damping >= 0:
+        raise ValueError(f"damping must be >= 0, got {damping}")
     for name, value in (("max_iterations", max_iterations), ("block_size", block_size)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -110,7 +120,6 @@ def kernel_gain(
         degree = jnp.sum(g, axis=1)  # >= 1: g_ii = 1
         k = g / jnp.sqrt(degree[:, None] * degree[None, :])
         row_sums = jnp.sum(k, axis=1)
-        markov = k / row_sums[:, None]
         # Phi = T Phi + eps (h - h_hat) is the linear system (D - k) Phi = eps D (h - h_hat) with
         # the symmetric graph Laplacian D - k (D = diag of the row sums): solvable when h_hat is
         # the mean under T's stationary weights pi ∝ D, and solved by conjugate gradients. Plain
@@ -121,7 +130,7 @@ def kernel_gain(
         centred_h = h_values - stationary @ h_values
         forcing = epsilon * centred_h
         potential, residual, iterations = _conjugate_gradients(
-            lambda v: (1.0 + damping) * row_sums[:, None] * v - k @ v,
+            lambda v: (1.0 + damping * epsilon) * row_sums[:, None] * v - k @ v,
             row_sums[:, None] * forcing,
             state.potential,
             tolerance,
@@ -136,15 +145,10 @@ def kernel_gain(
             tx = kx / jnp.sum(kx)
             return ((tx[:, None] * (particles - tx @ particles)).T @ (r - tx @ r)) / (2 * epsilon)
 
-        # At the particles, the same formula with the matrix T.
-        x_bar = markov @ particles
-        r_bar = markov @ r
-        outer = (markov @ (particles[:, :, None] * r[:, None, :]).reshape(num, -1)).reshape(
-            num, particles.shape[1], r.shape[1]
-        )
-        gain = (outer - x_bar[:, :, None] * r_bar[:, None, :]) / (2 * epsilon)
-        correction = jax.lax.map(
-            lambda x: stratonovich_correction(field, x), particles, batch_size=block_size
+        # At the particles too the gain is this centred local covariance (the uncentred form
+        # T(X r) - (T X)(T r) loses digits to cancellation), evaluated with its derivative.
+        gain, correction = jax.lax.map(
+            lambda x: gain_and_correction(field, x), particles, batch_size=block_size
         )
         finite = jnp.all(jnp.isfinite(gain)) & jnp.all(jnp.isfinite(correction))
         converged = residual <= 10 * tolerance  # CG stops at tolerance; allow float rounding

@@ -31,7 +31,7 @@ import numpy as np
 import optax
 import flax.linen as nn
 
-from ot_filter.continuous.gains.base import Gain, GainOutput, stratonovich_correction
+from ot_filter.continuous.gains.base import Gain, GainOutput, gain_and_correction
 from ot_filter.transport.networks import ACTIVATIONS, ResidualMLP
 
 Array = jax.Array
@@ -181,8 +181,7 @@ def learned_gain(
             jac = jax.jacfwd(lambda xx: psi(params, (xx - mean) / std))(x)  # [m, n]
             return (jac * scale[:, None]).T  # [n, m]
 
-        gain = jax.vmap(field)(particles)
-        correction = jax.vmap(lambda x: stratonovich_correction(field, x))(particles)
+        gain, correction = jax.vmap(lambda x: gain_and_correction(field, x))(particles)
         constant = (particles - mean).T @ centred_h / num
         usable = (
             jnp.isfinite(value)
