@@ -1,9 +1,11 @@
-"""Command-line entry point: ``ot-filter demo`` (``python -m ot_filter demo``).
+"""The ``ot-filter`` command (also ``python -m ot_filter``).
 
-The demo runs the standard Lorenz-63 twin experiment (Sakov et al. 2012, as in DAPPER: 1,001
-analyses, 25 RK4 steps apart) with the square-root EnKF (N = 10) and the regularised SIR
-particle filter (N = 800), prints their analysis RMSE and run times, and writes a figure and
-the numbers to the output directory.
+    ot-filter list                          the experiments and their options
+    ot-filter run EXPERIMENT [options]      run (or resume) one into --out
+    ot-filter demo [--out DIR]              Lorenz-63 twin experiment, EnKF and SIR (about a minute)
+    ot-filter gallery [--out DIR]           every experiment with --quick; their figures into DIR
+
+Errors in names, option values or the output directory are one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -11,20 +13,40 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
-import tempfile
 import time
+
+from ot_filter.runner.store import RunError, write_json_atomic
 
 BURN_IN_ANALYSES = 64  # DAPPER averages analyses after t = 16 (observations every 0.25)
 
 
-def _write_atomically(path: str, text: str) -> None:
-    directory = os.path.dirname(path) or "."
-    handle, temporary = tempfile.mkstemp(dir=directory, suffix=".tmp")
-    with os.fdopen(handle, "w") as stream:
-        stream.write(text)
-    os.chmod(temporary, 0o644)  # mkstemp makes it private; results are meant to be shared
-    os.replace(temporary, path)
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage dump)."""
+
+    def error(self, message):
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
+def _int_list(text: str):
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected integers separated by commas, got {text!r}") from None
+    return values
+
+
+def _float_list(text: str):
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+
+
+def _names(text: str):
+    return tuple(v.strip() for v in text.split(",") if v.strip())
 
 
 def run_demo(out: str, seed: int = 0) -> dict:
@@ -34,7 +56,10 @@ def run_demo(out: str, seed: int = 0) -> dict:
 
     import ot_filter as otf
 
-    os.makedirs(out, exist_ok=True)
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as error:
+        raise RunError(f"cannot write to output directory {out!r}: {error.strerror or error}") from None
     model = otf.models.lorenz63()
     states, observations = otf.simulate(jax.random.key(seed), model, 1001)
     methods = {
@@ -63,7 +88,7 @@ def run_demo(out: str, seed: int = 0) -> dict:
         print(f"{name:28s} rmse.a {metrics[name]['rmse_a']:.3f}   run {steady * 1e3:7.1f} ms"
               f"   compile {metrics[name]['seconds_compile']:.1f} s")
     _plot_demo(os.path.join(out, "demo.png"), states, observations, results)
-    _write_atomically(os.path.join(out, "metrics.json"), json.dumps(metrics, indent=2))
+    write_json_atomic(os.path.join(out, "metrics.json"), metrics)
     return metrics
 
 
@@ -73,6 +98,8 @@ def _plot_demo(path, states, observations, results):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+
+    from ot_filter.experiments._common import save_figure
 
     times = 0.25 * np.arange(1, states.shape[0] + 1)
     shown = times <= 25.0
@@ -92,26 +119,95 @@ def _plot_demo(path, states, observations, results):
     bottom.set(xlabel="time (model time units)", ylabel="analysis RMSE",
                title="RMSE over time (average taken after the burn-in, dotted line)")
     bottom.legend(loc="upper right", fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
+    save_figure(figure, os.path.dirname(path) or ".", os.path.basename(path))
+
+
+def _list() -> None:
+    from ot_filter.runner import EXPERIMENTS
+
+    for experiment in EXPERIMENTS.values():
+        print(f"{experiment.name:18s} {experiment.description}")
+        defaults = ", ".join(
+            f"--{k} {','.join(map(str, v)) if isinstance(v, tuple) else v}"
+            for k, v in experiment.defaults.items()
+        )
+        print(f"{'':18s}   defaults: {defaults}")
+        if experiment.sweep:
+            print(f"{'':18s}   sweeps over: {', '.join(experiment.sweep)} (comma-separated values)")
+
+
+def _gallery(out: str, runs: str) -> list[str]:
+    """Every experiment with --quick (runs under ``runs``); copies their PNGs into ``out``."""
+    from ot_filter.runner import EXPERIMENTS, run_experiment
+
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as error:
+        raise RunError(f"cannot write to output directory {out!r}: {error.strerror or error}") from None
+    copied = []
+    for name in EXPERIMENTS:
+        result = run_experiment(name, out=os.path.join(runs, name), quick=True)
+        for figure in result.figures:
+            target = os.path.join(out, f"{name}__{os.path.basename(figure)}")
+            shutil.copyfile(figure, target + ".tmp")
+            os.replace(target + ".tmp", target)
+            copied.append(target)
+    return copied
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="ot-filter", description=__doc__.splitlines()[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    demo = commands.add_parser("demo", help="Lorenz-63 twin experiment with EnKF and SIR")
+    parser = _Parser(prog="ot-filter", description="Experiments of the ot_filter toolkit.")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    commands.add_parser("list", help="list the experiments and their default options")
+    run = commands.add_parser("run", help="run (or resume) an experiment")
+    run.add_argument("experiment", help="an experiment name (ot-filter list)")
+    run.add_argument("--particles", type=_int_list, help="N, or N1,N2,... for a sweep")
+    run.add_argument("--dim", type=_int_list, help="state dimension n, or n1,n2,... for a sweep")
+    run.add_argument("--steps", type=int, help="time steps T")
+    run.add_argument("--simulations", type=int, help="independent simulations S")
+    run.add_argument("--block", type=int, help="simulations per stored cell (resume granularity)")
+    run.add_argument("--seed", type=int, help="PRNG seed K")
+    run.add_argument("--methods", type=_names, help="comma-separated, e.g. enkf,sir,ot")
+    run.add_argument("--noise", type=_float_list, help="observation noise levels (static example)")
+    run.add_argument("--dt", type=float, help="time step (continuous-time experiments)")
+    run.add_argument("--out", help="output directory (default ot-filter-runs/EXPERIMENT)")
+    run.add_argument("--quick", action="store_true", help="small settings: under two minutes on 2 cores")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar or step reports")
+    demo = commands.add_parser("demo", help="Lorenz-63 twin experiment with EnKF and SIR (about a minute)")
     demo.add_argument("--out", default="ot-filter-demo", help="output directory")
     demo.add_argument("--seed", type=int, default=0)
+    gallery = commands.add_parser("gallery", help="every experiment with --quick; figures into --out")
+    gallery.add_argument("--out", default="docs/gallery", help="where the PNGs go")
+    gallery.add_argument("--runs", default="ot-filter-runs/gallery", help="where the runs go")
     arguments = parser.parse_args(argv)
     try:
-        if arguments.command == "demo":
+        if arguments.command == "list":
+            _list()
+        elif arguments.command == "demo":
             run_demo(arguments.out, arguments.seed)
             print(f"wrote {os.path.join(arguments.out, 'demo.png')} and "
                   f"{os.path.join(arguments.out, 'metrics.json')}")
-    except (OSError, ValueError) as error:
+        elif arguments.command == "gallery":
+            copied = _gallery(arguments.out, arguments.runs)
+            print(f"wrote {len(copied)} figures to {arguments.out}")
+        else:
+            from ot_filter.runner import run_experiment
+
+            overrides = {k: getattr(arguments, k) for k in
+                         ("particles", "dim", "steps", "simulations", "block", "seed", "methods", "noise", "dt")}
+            result = run_experiment(arguments.experiment, overrides, arguments.out, arguments.quick,
+                                    progress=not arguments.no_progress,
+                                    command=["ot-filter", *(argv if argv is not None else sys.argv[1:])])
+            print(f"ran {result.cells_run} cells ({result.cells_skipped} already finished); "
+                  f"outputs in {result.out}: config.json, metrics.json, timings.json, arrays.npz, "
+                  + ", ".join(os.path.basename(f) for f in result.figures))
+    except (RunError, OSError) as error:
         print(f"ot-filter: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("ot-filter: interrupted; finished cells are kept, rerun the same command to resume",
+              file=sys.stderr)
+        return 130
     return 0
 
 

@@ -35,6 +35,7 @@ import numpy as np
 from ot_filter.metrics import spread as ensemble_spread
 from ot_filter.model import StateSpaceModel, model_dimensions
 from ot_filter.updates.base import BayesUpdate, uniform_log_weights
+from ot_filter.progress import maybe_report
 
 Array = jax.Array
 
@@ -79,6 +80,7 @@ def run_filter(
     initial_particles: Array | None = None,
     num_active: Array | int | None = None,
     update_first: bool = False,
+    progress: int = 0,
 ) -> FilterResult:
     """Filters a sequence of observations with a particle Bayes update.
 
@@ -101,6 +103,8 @@ def run_filter(
         increment dY_k is generated at X_{t_k}; ``mean`` and the saved particles are then those
         of the predictive distribution at t_{k+1} given dY_0..dY_k, i.e. the continuous-time
         filter at t_{k+1}.
+      progress: report every this many steps to ``ot_filter.progress`` listeners (0: off, no
+        callback compiled in; static).
 
     Returns:
       A ``FilterResult``.
@@ -136,12 +140,19 @@ def run_filter(
     num_steps = jnp.shape(observations)[0]
     if save_every > num_steps:
         save_every = 0  # no step would be saved
+    progress = check_progress(progress)
     result = _run_filter(
         key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
-        initial_particles, num_active, bool(update_first),
+        initial_particles, num_active, bool(update_first), progress,
     )
     saved_steps = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
     return result._replace(saved_steps=saved_steps)
+
+
+def check_progress(progress) -> int:
+    if isinstance(progress, bool) or not isinstance(progress, (int, np.integer)) or progress < 0:
+        raise ValueError(f"progress must be an int >= 0 (report every k steps; 0: off), got {progress!r}")
+    return int(progress)
 
 
 def _check_num_active(num_active, num_particles: int) -> Array:
@@ -164,10 +175,10 @@ def _check_num_active(num_active, num_particles: int) -> Array:
     return jnp.asarray(num_active, jnp.int32)
 
 
-@partial(jax.jit, static_argnames=("update", "num_particles", "save_every", "update_first"))
+@partial(jax.jit, static_argnames=("update", "num_particles", "save_every", "update_first", "progress"))
 def _run_filter(
     key, model, update, observations, num_particles, save_every, initial_particles, num_active,
-    update_first,
+    update_first, progress,
 ):
     init_key, state_key, steps_key = jax.random.split(key, 3)
     if initial_particles is None:
@@ -218,7 +229,7 @@ def _run_filter(
     step_keys = jax.random.split(steps_key, observations.shape[0])
     carry, outputs, saved = scan_with_snapshots(
         step, (particles, state), (step_keys, observations), save_every,
-        lambda carry: (carry[0], carry[1].log_weights),
+        lambda carry: (carry[0], carry[1].log_weights), progress,
     )
     saved_particles, saved_log_weights = saved if saved is not None else (None, None)
     mean, spread, info, observed = outputs
@@ -238,13 +249,25 @@ def _run_filter(
     )
 
 
-def scan_with_snapshots(step, carry, inputs, save_every: int, snapshot):
+def scan_with_snapshots(step, carry, inputs, save_every: int, snapshot, progress: int = 0):
     """``lax.scan(step, carry, inputs)`` that also returns ``snapshot(carry)`` after every
     ``save_every``-th step (stacked; None when ``save_every`` is 0) without storing the others.
 
     An outer scan over blocks of ``save_every`` steps saves the snapshot at each block's end; a
-    short remainder scan finishes the trajectory. Returns ``(carry, outputs, snapshots)``.
+    short remainder scan finishes the trajectory. ``progress`` > 0 reports every that many steps
+    to ``ot_filter.progress`` listeners (static). Returns ``(carry, outputs, snapshots)``.
     """
+    if progress:
+        num_steps = jax.tree.leaves(inputs)[0].shape[0]
+        plain_step = step
+
+        def step(carry, indexed):  # noqa: F811 - the same step, reporting its index
+            index, step_inputs = indexed
+            carry, outputs = plain_step(carry, step_inputs)
+            maybe_report(index, num_steps, progress)
+            return carry, outputs
+
+        inputs = (jnp.arange(num_steps), inputs)
     if save_every == 0:
         carry, outputs = jax.lax.scan(step, carry, inputs)
         return carry, outputs, None

@@ -27,7 +27,7 @@ import numpy as np
 
 from ot_filter.continuous.gains.base import Gain
 from ot_filter.continuous.sde import SDEModel, check_time_step, diffusion_increment, sde_dimensions
-from ot_filter.filtering import scan_with_snapshots
+from ot_filter.filtering import check_progress, scan_with_snapshots
 
 Array = jax.Array
 
@@ -107,6 +107,7 @@ def run_fpf(
     save_every: int = 0,
     initial_particles: Array | None = None,
     stratonovich: bool = True,
+    progress: int = 0,
 ) -> FPFResult:
     """Filters the observation increments ``[T, m]`` (from ``simulate_sde``) with the FPF.
 
@@ -120,6 +121,7 @@ def run_fpf(
       save_every: keep the particles after every k-th step (0: none; static).
       initial_particles: optional ``[N, n]`` instead of N draws from pi_0.
       stratonovich: add the Ito-Stratonovich correction (static).
+      progress: report every this many steps to ``ot_filter.progress`` listeners (0: off; static).
     """
     if not (isinstance(gain, tuple) and callable(getattr(gain, "init", None))
             and callable(getattr(gain, "apply", None))):
@@ -143,16 +145,18 @@ def run_fpf(
     num_steps = jnp.shape(increments)[0]
     if save_every > num_steps:
         save_every = 0
+    progress = check_progress(progress)
     result = _run_fpf(
         key, model, gain, jnp.asarray(increments), dt, int(num_particles), int(save_every),
-        initial_particles, bool(stratonovich),
+        initial_particles, bool(stratonovich), progress,
     )
     saved = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
     return result._replace(saved_steps=saved)
 
 
-@partial(jax.jit, static_argnames=("gain", "num_particles", "save_every", "stratonovich"))
-def _run_fpf(key, model, gain, increments, dt, num_particles, save_every, initial_particles, stratonovich):
+@partial(jax.jit, static_argnames=("gain", "num_particles", "save_every", "stratonovich", "progress"))
+def _run_fpf(key, model, gain, increments, dt, num_particles, save_every, initial_particles, stratonovich,
+             progress):
     init_key, gain_key, steps_key = jax.random.split(key, 3)
     if initial_particles is None:
         particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
@@ -174,7 +178,7 @@ def _run_fpf(key, model, gain, increments, dt, num_particles, save_every, initia
 
     keys = jax.random.split(steps_key, increments.shape[0])
     carry, outputs, saved = scan_with_snapshots(
-        step, (particles, state), (keys, increments), save_every, lambda carry: carry[0]
+        step, (particles, state), (keys, increments), save_every, lambda carry: carry[0], progress
     )
     mean, variance, info, observed, rejected = outputs
     return FPFResult(mean, variance, info, observed, saved, None, carry[0], carry[1], rejected)

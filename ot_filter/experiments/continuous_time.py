@@ -58,6 +58,64 @@ def exact_posterior_masses(increments: np.ndarray, dt: float, steps: np.ndarray)
     return density / density.sum(axis=1, keepdims=True)
 
 
+def filter_bimodal_paths(
+    key: jax.Array,
+    gain_name: str,
+    num_particles: int = 1000,
+    dt: float = 0.01,
+    num_steps: int = 200,
+    true_state: float = 1.0,
+    num_simulations: int = 4,
+    save_every: int = 10,
+    gain_options: dict | None = None,
+    progress: int = 0,
+) -> dict:
+    """One gain on ``num_simulations`` paths drawn from ``key`` (the same paths for every gain).
+
+    Returns NumPy arrays and numbers: ``times`` [S] of the saved steps, ``mmd`` and ``positive``
+    (mass on x > 0) [R, S] per simulation, the first simulation's ``final_particles`` [N] and
+    ``exact_final`` density on ``grid``, ``fallback_steps`` and ``rejected_updates`` (totals) and
+    ``timing`` (compile and run seconds, measured separately).
+    """
+    from ot_filter.experiments._common import compile_and_run
+
+    truth_model = squared_observation_sde(initial_mean=true_state, initial_std=1e-12)
+    model = squared_observation_sde()
+    keys = jax.random.split(key, num_simulations)
+    paths = jax.vmap(lambda k: simulate_sde(jax.random.fold_in(k, 0), truth_model, dt, num_steps))(keys)
+    increments = np.asarray(paths.increments)
+    save_every = min(save_every, num_steps)
+    steps = np.arange(save_every - 1, num_steps, save_every)
+    exact = np.stack([exact_posterior_masses(inc, dt, steps) for inc in increments])  # [R, S, G]
+    gain = make_gain(gain_name, gain_options)
+
+    def filter_one(key, inc):
+        out = run_fpf(jax.random.fold_in(key, 1), model, gain, inc, dt, num_particles,
+                      save_every=save_every, progress=progress)
+        return out.particles, getattr(out.info, "fallback", jnp.zeros(1, bool)), out.rejected_updates
+
+    (particles, fallback, rejected), timing = compile_and_run(
+        jax.vmap(filter_one), keys, jnp.asarray(increments), shard=False
+    )  # particles [R, S, N, 1]
+    grid = jnp.asarray(GRID, jnp.float32)
+    distance = jax.jit(jax.vmap(jax.vmap(
+        lambda x, w: metrics.mmd_to_product(x, grid, w[None], MMD_BANDWIDTH))))
+    mmd = np.asarray(distance(jnp.asarray(particles), jnp.asarray(exact, jnp.float32)))
+    return {
+        "times": (steps + 1) * dt,
+        "mmd": mmd,
+        "positive": (particles[..., 0] > 0).mean(axis=-1),
+        "final_particles": particles[0, -1, :, 0],
+        "grid": GRID,
+        "exact_final": exact[0, -1] / (GRID[1] - GRID[0]),
+        "exact": exact,
+        "increments": increments,
+        "fallback_steps": int(np.sum(fallback)),
+        "rejected_updates": int(np.sum(rejected)),
+        "timing": timing,
+    }
+
+
 def run_bimodal_example(
     seed: int = 0,
     num_particles: int = 1000,
@@ -74,49 +132,45 @@ def run_bimodal_example(
 
     Returns ``(metrics, arrays)``: per gain the MMD (h = 0.5) at the saved times (mean over
     simulations), its time average over the second half, the mass on the positive side (exact:
-    1/2) and the seconds (compile included); arrays hold the times, the exact densities and the
-    final ensembles of the first simulation for the figures.
+    1/2) and the seconds (compile and run); arrays hold the times, the exact densities and the
+    final ensembles of the first simulation for the figures. ``reference_particles`` > 0 adds the
+    large-SIR check (0: skip it).
     """
     gain_options = gain_options or {}
-    truth_model = squared_observation_sde(initial_mean=true_state, initial_std=1e-12)
-    model = squared_observation_sde()
-    keys = jax.random.split(jax.random.key(seed), num_simulations)
-    paths = jax.vmap(lambda k: simulate_sde(jax.random.fold_in(k, 0), truth_model, dt, num_steps))(keys)
-    increments = np.asarray(paths.increments)
-    steps = np.arange(save_every - 1, num_steps, save_every)
-    times = (steps + 1) * dt
-    exact = np.stack([exact_posterior_masses(inc, dt, steps) for inc in increments])  # [R, S, G]
-    grid = jnp.asarray(GRID, jnp.float32)
-
-    def distance_to_exact(particles, masses):  # [S, N, 1], [S, G] -> [S]
-        return jax.vmap(
-            lambda x, w: metrics.mmd_to_product(x, grid, w[None], MMD_BANDWIDTH)
-        )(particles, jnp.asarray(masses, jnp.float32))
-
     results: dict = {"gains": {}}
     finals = {}
     for name in gains:
-        gain = make_gain(name, gain_options.get(name))
-
-        def filter_one(key, inc, gain=gain):
-            return run_fpf(jax.random.fold_in(key, 1), model, gain, inc, dt, num_particles, save_every=save_every)
-
-        start = time.perf_counter()
-        out = jax.vmap(filter_one)(keys, jnp.asarray(increments))
-        particles = np.asarray(jax.block_until_ready(out.particles))  # [R, S, N, 1]
-        seconds = time.perf_counter() - start
-        mmds = np.stack([np.asarray(distance_to_exact(p, e)) for p, e in zip(particles, exact)])
-        positive = (particles[..., 0] > 0).mean(axis=-1)  # [R, S]
+        out = filter_bimodal_paths(
+            jax.random.key(seed), name, num_particles, dt, num_steps, true_state, num_simulations,
+            save_every, gain_options.get(name),
+        )
+        times, mmds, positive = out["times"], out["mmd"], out["positive"]
         late = times >= times[-1] / 2
+        seconds = out["timing"]["run_s"]
         results["gains"][name] = {
             "mmd_over_time": mmds.mean(axis=0).tolist(),
             "mmd_late": stats(mmds[:, late].mean(axis=1)),
             "positive_mass_final": stats(positive[:, -1]),
             "seconds": seconds,
+            "compile_seconds": out["timing"]["compile_s"],
             "seconds_per_step_and_simulation": seconds / (num_steps * num_simulations),
-            "fallback_steps": int(np.sum(np.asarray(getattr(out.info, "fallback", np.zeros(1))))),
+            "fallback_steps": out["fallback_steps"],
+            "rejected_updates": out["rejected_updates"],
         }
-        finals[name] = particles[0, -1, :, 0]
+        finals[name] = out["final_particles"]
+    exact, increments = out["exact"], out["increments"]
+    keys = jax.random.split(jax.random.key(seed), num_simulations)
+    model = squared_observation_sde()
+    grid = jnp.asarray(GRID, jnp.float32)
+    results["setting"] = {
+        "seed": seed, "num_particles": num_particles, "dt": dt, "num_steps": num_steps,
+        "true_state": true_state, "num_simulations": num_simulations, "save_every": save_every,
+        "mmd_bandwidth": MMD_BANDWIDTH, "gain_options": {k: repr(v) for k, v in gain_options.items()},
+    }
+    arrays = {"times": times, "grid": GRID, "exact_final": out["exact_final"],
+              **{f"final_{name}": value for name, value in finals.items()}}
+    if not reference_particles:
+        return results, arrays
 
     # The issue's protocol: a large SIR on the discretised model, checked against the exact posterior.
     discretised = discretise(model, dt)
@@ -137,13 +191,6 @@ def run_bimodal_example(
         "mmd_to_exact_final": stats(reference_mmd),
         "seconds": time.perf_counter() - start,
     }
-    results["setting"] = {
-        "seed": seed, "num_particles": num_particles, "dt": dt, "num_steps": num_steps,
-        "true_state": true_state, "num_simulations": num_simulations, "save_every": save_every,
-        "mmd_bandwidth": MMD_BANDWIDTH, "gain_options": {k: repr(v) for k, v in gain_options.items()},
-    }
-    arrays = {"times": times, "grid": GRID, "exact_final": exact[0, -1] / (GRID[1] - GRID[0]),
-              **{f"final_{name}": value for name, value in finals.items()}}
     return results, arrays
 
 

@@ -74,7 +74,7 @@ def simulate_truths(key, model, num_steps: int, num_simulations: int):
     return jax.vmap(lambda k: simulate(k, model, num_steps))(jax.random.split(key, num_simulations))
 
 
-def filter_simulations(key, model, update, observations, num_particles: int, num_active=None):
+def filter_simulations(key, model, update, observations, num_particles: int, num_active=None, progress: int = 0):
     """Runs ``update``'s filter on every simulation (vmapped; over ``num_active`` too if it is an
     array of particle counts, with a padded particle axis of ``num_particles``).
 
@@ -86,7 +86,7 @@ def filter_simulations(key, model, update, observations, num_particles: int, num
 
     def one(k, y, active):
         extra = {} if active is None else {"num_active": active}
-        result = run_filter(k, model, update, y, num_particles, save_every=1, **extra)
+        result = run_filter(k, model, update, y, num_particles, save_every=1, progress=progress, **extra)
         return result.particles, result.log_weights, result.info
 
     if num_active is None:
@@ -182,6 +182,7 @@ def run_dynamic_example(
     average_from: float = 1.0,
     sir_reference: int = 0,
     keep: int = 1,
+    progress: int = 0,
 ) -> dict:
     """Filters ``num_simulations`` independent trajectories with every method; measures MMD to the
     exact posterior at every time.
@@ -195,6 +196,7 @@ def run_dynamic_example(
         the authors' reference) and report the MMD of each method against it (2,000 of its
         resampled particles) and its own drift off the exact mode symmetry.
       keep: simulations whose particles are kept in ``arrays`` (for figures).
+      progress: report every this many steps to ``ot_filter.progress`` listeners (0: off).
 
     Returns:
       ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``.
@@ -222,7 +224,8 @@ def run_dynamic_example(
     filtered = {}
     for index, (name, update) in enumerate(updates.items()):
         particles, log_weights, info, timing = filter_simulations(
-            jax.random.fold_in(filter_key, index), model, update, observations, num_particles
+            jax.random.fold_in(filter_key, index), model, update, observations, num_particles,
+            progress=progress,
         )
         distances = mmd_to_exact(particles, log_weights, reference, bandwidth, standardise)
         positive = positive_mass(particles, log_weights)

@@ -82,11 +82,13 @@ def run_lorenz63(
     ot_options: dict | None = None,
     save_every: int = 5,
     reference_particles: int = 0,
+    progress: int = 0,
 ) -> dict:
     """Runs every method on ``num_simulations`` independent truths (vmapped, one compiled program
     per method). Returns ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``; the arrays hold
     the first simulation's truth and the particles of every ``save_every``-th step for figures.
-    ``reference_particles`` > 0 adds a SIR with that many particles (saved: its mean only)."""
+    ``reference_particles`` > 0 adds a SIR with that many particles (saved: its mean only);
+    ``progress`` > 0 reports every that many steps to ``ot_filter.progress`` listeners."""
     truth_model, filter_model = lorenz63_models()
     updates = _updates(methods, ot_options)
     if reference_particles:
@@ -110,7 +112,7 @@ def run_lorenz63(
 
         def one(k, y, update=update, is_reference=is_reference):
             result = run_filter(k, filter_model, update, y, reference_particles if is_reference else num_particles,
-                                save_every=0 if is_reference else save_every)
+                                save_every=0 if is_reference else save_every, progress=progress)
             return result.mean, result.particles, getattr(result.info, "diverged", None)
 
         (mean, particles, diverged), timing = compile_and_run(jax.vmap(one), keys, observations)

@@ -1,0 +1,418 @@
+"""The experiments ``ot-filter run`` knows: their options, their cells and their figures.
+
+An experiment is split into cells (method x swept option values x block of simulations), each an
+independent, deterministic computation: its PRNG key derives from the seed and the cell's
+coordinates, never from the order in which cells run, so a resumed sweep reproduces an
+uninterrupted one. Truths depend on the block (and the dimension) but not on the method or the
+particle count, so every method and every N sees the same simulations.
+
+``run_cell(options, cell, progress)`` returns a ``CellOutput``: per-simulation numbers (JSON),
+per-simulation curves over time, and arrays for figures; ``plot(options, groups, out)`` draws
+the figures from the summarised groups (one per method and swept value).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["CellOutput", "Experiment", "EXPERIMENTS"]
+
+
+class CellOutput(NamedTuple):
+    per_simulation: dict  # name -> [S_block] floats (the summary's mean / s.e. come from these)
+    counts: dict  # name -> int, summed over blocks (e.g. diverged OT trainings)
+    curves: dict  # name -> [S_block, T] array (the summary averages them over simulations)
+    arrays: dict  # name -> array, for figures (the summary keeps block 0's)
+    timing: dict  # {"compile_s", "run_s"}
+
+
+class Experiment(NamedTuple):
+    name: str
+    description: str
+    defaults: dict  # option -> default value; only these options apply
+    quick: dict  # overrides under --quick (each experiment then takes < 2 min on 2 cores)
+    sweep: tuple  # options that may take several values (each value is its own cell)
+    methods: tuple  # the methods it knows
+    run_cell: Callable[[dict, dict, int], CellOutput]
+    plot: Callable[[dict, list, str], list]
+    minimum_steps: int = 1  # e.g. Lorenz-63 averages after t = 1.5 (150 steps)
+
+
+def cell_key(seed: int, *coordinates: int) -> jax.Array:
+    key = jax.random.key(seed)
+    for value in coordinates:
+        key = jax.random.fold_in(key, int(value))
+    return key
+
+
+def _timed(function, *args):
+    """(output as NumPy, {"compile_s", "run_s"}) for a jit-compiled call."""
+    from ot_filter.experiments._common import compile_and_run
+
+    return compile_and_run(function, *args, shard=False)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, out, name):
+    from ot_filter.experiments._common import save_figure
+
+    return save_figure(fig, out, name)
+
+
+def _band(ax, x, curve, label, **style):
+    mean, se = np.asarray(curve["mean"]), np.asarray(curve["se"])
+    line, = ax.plot(x, mean, label=label, **style)
+    ax.fill_between(x, mean - 2 * se, mean + 2 * se, color=line.get_color(), alpha=0.2, lw=0)
+
+
+def _errorbar_vs(ax, groups, axis, metric, method_label):
+    for method in dict.fromkeys(g["method"] for g in groups):
+        rows = sorted((g for g in groups if g["method"] == method), key=lambda g: g[axis])
+        x = [g[axis] for g in rows]
+        mean = [g["per_simulation"][metric]["mean"] for g in rows]
+        se = [2 * g["per_simulation"][metric]["se"] for g in rows]
+        ax.errorbar(x, mean, yerr=se, marker="o", capsize=3, label=method_label(method))
+
+
+LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer",
+          "constant": "FPF, constant gain", "kernel": "FPF, kernel gain", "learned": "FPF, learned gain"}
+
+
+def _label(method):
+    return LABELS.get(method, method)
+
+
+# --- the static example ------------------------------------------------------------------------
+
+
+def _static_cell(options, cell, progress):
+    from ot_filter.experiments.static_example import run_static_example
+
+    del progress  # one Bayes update: nothing to report
+    noise_index = options["noise"].index(cell["noise"])
+    key = cell_key(options["seed"], noise_index, cell["block"])
+    start = time.perf_counter()
+    result = run_static_example(key, noise=cell["noise"], num_particles=cell["particles"],
+                                num_seeds=cell["simulations"], dim=options["dim"][0],
+                                methods=(cell["method"],))
+    seconds = time.perf_counter() - start
+    summary, arrays = result["metrics"][cell["method"]], result["arrays"]
+    positive = np.asarray(summary["positive_mass_per_seed"])
+    per_sim = {"w1": summary["w1_per_seed"], "positive_mass_x1": positive[:, 0].tolist()}
+    counts = {"simulations_holding_both_modes": summary["seeds_holding_both_modes"]}
+    if "diverged_seeds" in summary:
+        counts["diverged_trainings"] = summary["diverged_seeds"]
+    figure_arrays = {"posterior": arrays[f"{cell['method']}_posterior"][0], "grid": arrays["grid"],
+                     "density": arrays["density"]}
+    return CellOutput(per_sim, counts, {}, figure_arrays, {"compile_s": 0.0, "run_s": seconds})
+
+
+def _static_plot(options, groups, out):
+    plt = _plt()
+    paths = []
+    for noise in options["noise"]:
+        for particles in options["particles"]:
+            rows = [g for g in groups if g["noise"] == noise and g["particles"] == particles]
+            fig, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 3.6), squeeze=False, sharey=True)
+            for ax, g in zip(axes[0], rows):
+                a = g["arrays"]
+                ax.hist(a["posterior"][:, 0], bins=60, range=(-3, 3), density=True, alpha=0.6,
+                        label="particles")
+                ax.plot(a["grid"], a["density"], "k", lw=1.2, label="exact posterior")
+                w1 = g["per_simulation"]["w1"]
+                ax.set(xlim=(-3, 3), xlabel="$x_1$",
+                       title=f"{_label(g['method'])}: W1 {w1['mean']:.3f} ± {w1['se']:.3f}")
+                ax.legend(fontsize=8)
+            axes[0, 0].set_ylabel("density")
+            fig.suptitle(f"Static example: posterior of $x_1$ given y = 1 (noise {noise}, N = {particles})")
+            paths.append(_save(fig, out, f"posterior_noise{noise}_N{particles}.png"))
+    return paths
+
+
+# --- the dynamic example -----------------------------------------------------------------------
+
+DYNAMIC_KERNELS = {  # (bandwidth, standardise): the chapter's settings for each figure
+    "dynamic": (1.0, False),
+    "dynamic-dims": (4.0, True),
+    "dynamic-particles": (0.6, True),
+}
+
+
+def _dynamic_cell(options, cell, progress):
+    from ot_filter.experiments.dynamic_example import run_dynamic_example
+
+    bandwidth, standardise = DYNAMIC_KERNELS[options["experiment"]]
+    key = cell_key(options["seed"], cell["dim"], cell["block"])
+    start = time.perf_counter()
+    result = run_dynamic_example(
+        key, dim=cell["dim"], num_particles=cell["particles"], num_steps=options["steps"], progress=progress,
+        num_simulations=cell["simulations"], methods=(cell["method"],), bandwidth=bandwidth,
+        standardise=standardise, average_from=min(1.0, 0.1 * options["steps"]), keep=1,
+    )
+    seconds = time.perf_counter() - start
+    method = cell["method"]
+    summary, arrays = result["metrics"][method], result["arrays"]
+    timing = {"compile_s": summary.get("compile_s", 0.0), "run_s": summary.get("run_s", seconds)}
+    counts = {k: summary[k] for k in ("diverged_steps",) if k in summary}
+    figure_arrays = {"times": arrays["times"], "states": arrays["states"][0],
+                     "particles": arrays[f"{method}_particles"][0]}
+    return CellOutput({"mmd_average": summary["mmd_average_per_simulation"]}, counts,
+                      {"mmd": arrays[f"{method}_mmd"]}, figure_arrays, timing)
+
+
+def _dynamic_plot(options, groups, out):
+    plt = _plt()
+    experiment = options["experiment"]
+    paths = []
+    if experiment == "dynamic":
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+        for g in groups:
+            _band(ax, g["arrays"]["times"], g["curves"]["mmd"], _label(g["method"]))
+        ax.set(xlabel="time t", ylabel="MMD to the exact posterior",
+               title=f"Dynamic example, n = {options['dim'][0]}, N = {options['particles'][0]} "
+                     f"({options['simulations']} simulations, band: ±2 s.e.)")
+        ax.legend()
+        ax.grid(alpha=0.3)
+        paths.append(_save(fig, out, "mmd_over_time.png"))
+        fig, axes = plt.subplots(len(groups), 1, figsize=(7, 2.4 * len(groups)), sharex=True, squeeze=False)
+        for ax, g in zip(axes[:, 0], groups):
+            a = g["arrays"]
+            times = np.repeat(a["times"][:, None], a["particles"].shape[1], axis=1)
+            ax.scatter(times, a["particles"][:, :, 0], s=1, alpha=0.1, color="tab:blue")
+            ax.plot(a["times"], a["states"][:, 0], "k-", lw=1.5, label="truth")
+            ax.plot(a["times"], -a["states"][:, 0], "k:", lw=1, label="mirror mode")
+            ax.set(ylabel="$x_1$", title=f"{_label(g['method'])} particles (first simulation)")
+            ax.legend(loc="upper right", fontsize=8)
+        axes[-1, 0].set_xlabel("time t")
+        paths.append(_save(fig, out, "particles_over_time.png"))
+    else:
+        axis = "dim" if experiment == "dynamic-dims" else "particles"
+        fig, ax = plt.subplots(figsize=(6, 4))
+        _errorbar_vs(ax, groups, axis, "mmd_average", _label)
+        if axis == "particles":
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        ax.set(xlabel="state dimension n" if axis == "dim" else "number of particles N",
+               ylabel="time-averaged MMD (standardised)",
+               title=f"Dynamic example: MMD vs {'dimension' if axis == 'dim' else 'particle count'} "
+                     f"(±2 s.e.)")
+        ax.legend()
+        ax.grid(alpha=0.3, which="both")
+        paths.append(_save(fig, out, f"mmd_vs_{'dimension' if axis == 'dim' else 'particles'}.png"))
+    return paths
+
+
+# --- Lorenz-63 (the chapter's setting) and Lorenz-96 (DAPPER's twin experiment) ---------------------
+
+
+def _lorenz63_cell(options, cell, progress):
+    from ot_filter.experiments.lorenz63 import SETTLE_TIME, run_lorenz63
+
+    key = cell_key(options["seed"], cell["block"])
+    result = run_lorenz63(key, num_particles=cell["particles"], num_steps=options["steps"],
+                          num_simulations=cell["simulations"], methods=(cell["method"],), save_every=5,
+                          progress=progress)
+    method = cell["method"]
+    summary, arrays = result["metrics"][method], result["arrays"]
+    mse = arrays[f"{method}_mse"]  # [S, T]
+    settled = arrays["times"] > SETTLE_TIME
+    counts = {k: summary[k] for k in ("diverged_steps",) if k in summary}
+    figure_arrays = {"times": arrays["times"], "states": arrays["states"], "saved_times": arrays["saved_times"],
+                     "particles": arrays[f"{method}_particles"]}
+    return CellOutput({"mse_after_settle": mse[:, settled].mean(axis=1).tolist()}, counts,
+                      {"mse": mse}, figure_arrays,
+                      {"compile_s": summary["compile_s"], "run_s": summary["run_s"]})
+
+
+def _lorenz63_plot(options, groups, out):
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for g in groups:
+        _band(ax, g["arrays"]["times"], g["curves"]["mse"], _label(g["method"]))
+    ax.set(yscale="log", xlabel="time t", ylabel="MSE of the ensemble mean",
+           title=f"Lorenz-63 (x1, x3 observed), N = {options['particles'][0]}, "
+                 f"{options['simulations']} simulations")
+    ax.axhline(1.0, color="grey", ls=":", lw=1)
+    ax.legend()
+    ax.grid(alpha=0.3, which="both")
+    paths = [_save(fig, out, "lorenz63_mse.png")]
+    fig, axes = plt.subplots(len(groups), 1, figsize=(7, 2.4 * len(groups)), sharex=True, squeeze=False)
+    for ax, g in zip(axes[:, 0], groups):
+        a = g["arrays"]
+        times = np.repeat(a["saved_times"][:, None], a["particles"].shape[1], axis=1)
+        ax.scatter(times, a["particles"][:, :, 1], s=1, alpha=0.05, color="tab:blue")
+        ax.plot(a["times"], a["states"][:, 1], "k-", lw=1.2, label="truth")
+        ax.set(ylabel="$x_2$ (unobserved)", title=f"{_label(g['method'])} particles (first simulation)",
+               ylim=(-40, 40))
+        ax.legend(loc="upper right", fontsize=8)
+    axes[-1, 0].set_xlabel("time t")
+    paths.append(_save(fig, out, "lorenz63_particles.png"))
+    return paths
+
+
+def lorenz96_update(method: str):
+    """Lorenz-96 updates: the square-root EnKF with inflation 1.02 (DAPPER tunes 1.013 for N = 24),
+    the regularised SIR of the Lorenz-63 benchmark, and the OT filter with the 1024 -> 64 schedule."""
+    import ot_filter as otf
+
+    if method == "enkf":
+        return otf.enkf(inflation=1.02, perturbed=False, rotate=True)
+    if method == "sir":
+        return otf.sir(ess_threshold=0.2, jitter=0.9)
+    return otf.ot(num_iterations=(1024, 64))
+
+
+def _lorenz96_cell(options, cell, progress):
+    import ot_filter as otf
+    from ot_filter import metrics
+
+    model = otf.models.lorenz96(dim=cell["dim"])
+    truth_key, filter_key = jax.random.split(cell_key(options["seed"], cell["dim"], cell["block"]))
+    truths = jax.vmap(lambda k: otf.simulate(k, model, options["steps"]))(
+        jax.random.split(truth_key, cell["simulations"]))
+    states, observations = (np.asarray(a) for a in truths)
+    update = lorenz96_update(cell["method"])
+
+    def one(k, y):
+        result = otf.run_filter(k, model, update, y, cell["particles"], save_every=0, progress=progress)
+        return result.mean
+
+    means, timing = _timed(jax.vmap(one), jax.random.split(filter_key, cell["simulations"]), observations)
+    rmse = np.asarray(jax.vmap(metrics.rmse)(jnp.asarray(means), jnp.asarray(states)))  # [S, T]
+    late = slice(options["steps"] // 2, None)  # DAPPER averages after a burn-in; here the 2nd half
+    times = 0.05 * np.arange(1, options["steps"] + 1)
+    return CellOutput({"rmse_a": rmse[:, late].mean(axis=1).tolist()}, {}, {"rmse": rmse},
+                      {"times": times}, timing)
+
+
+def _lorenz96_plot(options, groups, out):
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for g in groups:
+        mean = g["per_simulation"]["rmse_a"]["mean"]
+        _band(ax, g["arrays"]["times"], g["curves"]["rmse"],
+              f"{_label(g['method'])} (n = {g['dim']}): rmse.a {mean:.2f}")
+    ax.set(yscale="log", xlabel="time (model units)", ylabel="analysis RMSE",
+           title=f"Lorenz-96 twin experiment, N = {options['particles'][0]} "
+                 f"({options['simulations']} simulations; noise std 1)")
+    ax.axvline(0.05 * (options["steps"] // 2), color="grey", ls=":", lw=1)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    return [_save(fig, out, "lorenz96_rmse.png")]
+
+
+# --- continuous time: the FPF on dY = X^2 dt + dW -------------------------------------------------
+
+
+def _continuous_cell(options, cell, progress):
+    from ot_filter.experiments.continuous_time import filter_bimodal_paths
+
+    out = filter_bimodal_paths(cell_key(options["seed"], cell["block"]), cell["method"],
+                               num_particles=cell["particles"], dt=options["dt"],
+                               num_steps=options["steps"], num_simulations=cell["simulations"],
+                               progress=progress)
+    late = out["times"] >= out["times"][-1] / 2
+    per_sim = {"mmd_average": out["mmd"][:, late].mean(axis=1).tolist(),
+               "positive_mass_final": out["positive"][:, -1].tolist()}
+    counts = {"fallback_steps": out["fallback_steps"], "rejected_updates": out["rejected_updates"]}
+    figure_arrays = {k: out[k] for k in ("times", "grid", "exact_final", "final_particles")}
+    return CellOutput(per_sim, counts, {"mmd": out["mmd"]}, figure_arrays, out["timing"])
+
+
+def _continuous_plot(options, groups, out):
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for g in groups:
+        _band(ax, g["arrays"]["times"], g["curves"]["mmd"], _label(g["method"]))
+    ax.set(xlabel="time t", ylabel="MMD to the exact posterior (h = 0.5)",
+           title=f"FPF on dY = X² dt + dW (X = 1), N = {options['particles'][0]}, dt = {options['dt']}")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    paths = [_save(fig, out, "fpf_mmd_over_time.png")]
+    fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 3.4), sharey=True, squeeze=False)
+    for ax, g in zip(axes[0], groups):
+        a = g["arrays"]
+        ax.hist(a["final_particles"], bins=80, range=(-3, 3), density=True, alpha=0.6, label="particles")
+        ax.plot(a["grid"], a["exact_final"], "k", lw=1.5, label="exact posterior")
+        ax.set(xlim=(-3, 3), xlabel="state x", title=f"{_label(g['method'])}, t = {a['times'][-1]:.2f}")
+    axes[0, 0].set_ylabel("density")
+    axes[0, 0].legend(fontsize=8)
+    paths.append(_save(fig, out, "fpf_final_ensembles.png"))
+    return paths
+
+
+_COMMON = {"seed": 0, "block": 5}
+
+EXPERIMENTS = {
+    e.name: e
+    for e in (
+        Experiment(
+            "static", "the chapter's static example: one Bayes update, y = x^2 observation, both noise levels",
+            dict(_COMMON, particles=(1000,), dim=(2,), noise=(0.4, 0.04), simulations=3, block=1,
+                 methods=("enkf", "sir", "ot")),
+            dict(particles=(300,), simulations=1),
+            ("particles", "noise"), ("enkf", "sir", "ot"), _static_cell, _static_plot,
+        ),
+        Experiment(
+            "dynamic", "the chapter's dynamic example: MMD to the exact posterior over time",
+            dict(_COMMON, particles=(1000,), dim=(2,), steps=50, simulations=20, methods=("enkf", "sir", "ot")),
+            dict(particles=(200,), steps=15, simulations=2, block=2),
+            (), ("enkf", "sir", "ot"), _dynamic_cell, _dynamic_plot,
+        ),
+        Experiment(
+            "dynamic-dims", "the dynamic example's MMD vs state dimension (sweep)",
+            dict(_COMMON, particles=(1000,), dim=(2, 4, 6, 8, 10), steps=20, simulations=20,
+                 methods=("enkf", "sir", "ot")),
+            dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2, methods=("enkf", "sir")),
+            ("dim",), ("enkf", "sir", "ot"), _dynamic_cell, _dynamic_plot,
+        ),
+        Experiment(
+            "dynamic-particles", "the dynamic example's MMD vs particle count (sweep)",
+            dict(_COMMON, particles=(100, 200, 400, 800, 1600), dim=(2,), steps=20, simulations=20,
+                 methods=("enkf", "sir", "ot")),
+            dict(particles=(100, 400), steps=12, simulations=2, block=2, methods=("enkf", "sir")),
+            ("particles",), ("enkf", "sir", "ot"), _dynamic_cell, _dynamic_plot,
+        ),
+        Experiment(
+            "lorenz63", "the chapter's Lorenz-63 experiment (x1, x3 observed): MSE over time",
+            dict(_COMMON, particles=(1000,), steps=500, simulations=10, block=5,
+                 methods=("enkf", "sir", "ot", "ot_enkf")),
+            dict(particles=(200,), steps=250, simulations=2, block=2, methods=("enkf", "sir", "ot")),
+            (), ("enkf", "sir", "ot", "ot_enkf"), _lorenz63_cell, _lorenz63_plot, minimum_steps=151,
+        ),
+        Experiment(
+            "lorenz96", "Lorenz-96 twin experiment (DAPPER's sakov2008 setting): analysis RMSE",
+            dict(_COMMON, particles=(100,), dim=(40,), steps=500, simulations=4, block=4,
+                 methods=("enkf", "sir", "ot")),
+            dict(particles=(50,), steps=100, simulations=2, block=2, methods=("enkf", "sir")),
+            ("dim",), ("enkf", "sir", "ot"), _lorenz96_cell, _lorenz96_plot,
+        ),
+        Experiment(
+            "fpf-bimodal", "continuous time: feedback particle filter gains on dY = X^2 dt + dW",
+            dict(_COMMON, particles=(1000,), steps=200, dt=0.01, simulations=4, block=4,
+                 methods=("constant", "kernel", "learned")),
+            dict(particles=(300,), steps=100, dt=0.02, simulations=2, block=2),
+            (), ("constant", "kernel", "learned"), _continuous_cell, _continuous_plot,
+        ),
+    )
+}
+
+
+def blocks(num_simulations: int, block: int) -> list[int]:
+    """Sizes of the simulation blocks (the last may be smaller)."""
+    count = math.ceil(num_simulations / block)
+    return [min(block, num_simulations - b * block) for b in range(count)]
