@@ -14,9 +14,12 @@ import argparse
 import json
 import os
 import shutil
+import signal
 import sys
+import threading
 import time
 
+from ot_filter.runner.run import RunInterrupted
 from ot_filter.runner.store import RunError, write_json_atomic
 
 BURN_IN_ANALYSES = 64  # DAPPER averages analyses after t = 16 (observations every 0.25)
@@ -28,6 +31,35 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):
         print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         sys.exit(2)
+
+
+class _GracefulInterrupt:
+    """Ctrl-C (SIGINT) once: finish the running cell, store it, stop. Twice: stop at once.
+
+    A KeyboardInterrupt raised wherever the interpreter happens to be can be swallowed (e.g. when
+    it lands in a garbage-collection callback of JAX: "Exception ignored in ..."), so the first
+    signal only sets a flag that the runner polls between cells."""
+
+    def __init__(self):
+        self.count = 0
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.signal(signal.SIGINT, self._handle)
+
+    def restore(self):
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+
+    def _handle(self, signum, frame):
+        self.count += 1
+        if self.count == 1:
+            print("\not-filter: stopping after the running cell (Ctrl-C again to stop now)", file=sys.stderr)
+        else:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            raise KeyboardInterrupt
+
+    def requested(self) -> bool:
+        return self.count > 0
 
 
 def _int_list(text: str):
@@ -195,16 +227,21 @@ def main(argv: list[str] | None = None) -> int:
 
             overrides = {k: getattr(arguments, k) for k in
                          ("particles", "dim", "steps", "simulations", "block", "seed", "methods", "noise", "dt")}
-            result = run_experiment(arguments.experiment, overrides, arguments.out, arguments.quick,
-                                    progress=not arguments.no_progress,
-                                    command=["ot-filter", *(argv if argv is not None else sys.argv[1:])])
+            stop = _GracefulInterrupt()
+            try:
+                result = run_experiment(arguments.experiment, overrides, arguments.out, arguments.quick,
+                                        progress=not arguments.no_progress,
+                                        command=["ot-filter", *(argv if argv is not None else sys.argv[1:])],
+                                        stop_requested=stop.requested)
+            finally:
+                stop.restore()
             print(f"ran {result.cells_run} cells ({result.cells_skipped} already finished); "
                   f"outputs in {result.out}: config.json, metrics.json, timings.json, arrays.npz, "
                   + ", ".join(os.path.basename(f) for f in result.figures))
     except (RunError, OSError) as error:
         print(f"ot-filter: error: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, RunInterrupted):
         print("ot-filter: interrupted; finished cells are kept, rerun the same command to resume",
               file=sys.stderr)
         return 130

@@ -2,7 +2,7 @@
 resumable cells, an output directory written atomically, progress reports, and figures."""
 
 from ot_filter.runner.catalogue import EXPERIMENTS, CellOutput, Experiment
-from ot_filter.runner.run import RunOutput, resolve_options, run_experiment
+from ot_filter.runner.run import RunInterrupted, RunOutput, resolve_options, run_experiment
 from ot_filter.runner.store import RunDirectory, RunError
 
 __all__ = [
@@ -11,6 +11,7 @@ __all__ = [
     "Experiment",
     "RunDirectory",
     "RunError",
+    "RunInterrupted",
     "RunOutput",
     "resolve_options",
     "run_experiment",

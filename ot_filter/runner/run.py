@@ -22,7 +22,11 @@ import numpy as np
 from ot_filter.runner.catalogue import EXPERIMENTS, blocks
 from ot_filter.runner.store import RunDirectory, RunError
 
-__all__ = ["RunOutput", "resolve_options", "run_experiment"]
+__all__ = ["RunInterrupted", "RunOutput", "resolve_options", "run_experiment"]
+
+
+class RunInterrupted(Exception):
+    """The run stopped between cells on request (e.g. Ctrl-C); rerunning resumes it."""
 
 SINGLE_VALUED = ("seed", "steps", "simulations", "block", "dt")
 POSITIVE_INTS = ("particles", "dim", "steps", "simulations", "block")
@@ -168,12 +172,15 @@ def run_experiment(
     progress: bool = True,
     command: list | None = None,
     log: Callable[[str], None] = print,
+    stop_requested: Callable[[], bool] = lambda: False,
 ) -> RunOutput:
     """Runs (or resumes) experiment ``name`` into ``out``; returns the summary and figure paths.
 
     ``overrides``: option -> value (``particles``, ``dim``, ``steps``, ``simulations``, ``seed``,
     ``methods``, ``block``, ...; only the experiment's own). ``progress``: a progress bar over
-    cells and, inside the compiled filters, step reports (about 20 per run).
+    cells and, inside the compiled filters, step reports (about 20 per run). ``stop_requested``
+    is polled between cells: when it returns True the run stops with ``RunInterrupted`` (the
+    finished cells stay stored).
     """
     from ot_filter.progress import every_fraction, progress_listener
 
@@ -189,6 +196,8 @@ def run_experiment(
     bar = _progress_bar(len(cells), len(cells) - len(pending), name, enabled=progress)
     try:
         for cell in pending:
+            if stop_requested():
+                raise RunInterrupted(f"stopped before cell {cell_id(cell)}")
             bar.set_postfix_str(cell_id(cell))
             started = time.perf_counter()
             with progress_listener(lambda done, total: bar.set_postfix_str(f"{cell_id(cell)} step {done}/{total}")):

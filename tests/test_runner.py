@@ -1,0 +1,134 @@
+"""The experiment runner: outputs, one-line errors, and resuming an interrupted sweep."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+import ot_filter as otf
+from ot_filter.progress import progress_listener
+from ot_filter.runner import EXPERIMENTS, RunError, resolve_options
+
+# A small sweep: Lorenz-96 (n = 8), 2 methods x 4 blocks of one simulation = 8 cells of ~1 s.
+SWEEP = ["run", "lorenz96", "--dim", "8", "--particles", "10", "--steps", "20", "--simulations", "4",
+         "--block", "1", "--methods", "enkf,sir", "--no-progress"]
+
+
+def _cli(*arguments):
+    return subprocess.Popen([sys.executable, "-m", "ot_filter", *arguments], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _finished_cells(out):
+    cells = os.path.join(out, "cells")
+    return sorted(f for f in os.listdir(cells) if f.endswith(".json")) if os.path.isdir(cells) else []
+
+
+def _interrupt_after(out, cells, sig):
+    """Starts the sweep, sends ``sig`` once ``cells`` cells are stored; returns (code, stderr)."""
+    process = _cli(*SWEEP, "--out", out)
+    deadline = time.monotonic() + 240
+    while len(_finished_cells(out)) < cells and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(sig)
+    _, error = process.communicate(timeout=120)
+    return process.returncode, error
+
+
+def test_interrupted_sweep_resumes_and_reproduces_the_uninterrupted_metrics(tmp_path):
+    whole = str(tmp_path / "whole")
+    process = _cli(*SWEEP, "--out", whole)
+    output, error = process.communicate(timeout=300)
+    assert process.returncode == 0, error
+    assert "ran 8 cells (0 already finished)" in output
+
+    resumed = str(tmp_path / "resumed")
+    code, error = _interrupt_after(resumed, 2, signal.SIGINT)  # stops after the running cell
+    assert code == 130 and "rerun the same command to resume" in error and "Traceback" not in error
+    after_sigint = len(_finished_cells(resumed))
+    code, _ = _interrupt_after(resumed, after_sigint + 1, signal.SIGKILL)  # stops at once
+    assert code == -signal.SIGKILL
+    stored = _finished_cells(resumed)
+    assert after_sigint < len(stored) < 8
+    assert not os.path.exists(os.path.join(resumed, "metrics.json"))  # no summary before the end
+    for name in os.listdir(os.path.join(resumed, "cells")):  # no half-written file under a final name
+        assert not name.endswith(".tmp") or name.startswith(".")
+    process = _cli(*SWEEP, "--out", resumed)
+    output, error = process.communicate(timeout=300)
+    assert process.returncode == 0, error
+    assert f"ran {8 - len(stored)} cells ({len(stored)} already finished)" in output
+
+    with open(os.path.join(whole, "metrics.json")) as a, open(os.path.join(resumed, "metrics.json")) as b:
+        assert a.read() == b.read()
+    config = json.load(open(os.path.join(whole, "config.json")))
+    assert config["ot_filter_version"] == otf.__version__ and config["backend"] == jax.default_backend()
+    assert config["options"]["particles"] == [10] and config["command"][:3] == ["ot-filter", "run", "lorenz96"]
+    timings = json.load(open(os.path.join(whole, "timings.json")))
+    assert timings["total_compile_s"] > 0 and timings["total_run_s"] > 0
+    assert os.path.getsize(os.path.join(whole, "lorenz96_rmse.png")) > 10_000
+    with np.load(os.path.join(whole, "arrays.npz")) as arrays:
+        assert arrays["method-enkf_dim-8_particles-10/rmse_mean"].shape == (20,)
+    metrics = json.load(open(os.path.join(whole, "metrics.json")))
+    for row in metrics["results"]:  # one row per method, the blocks' simulations joined in order
+        values = row["per_simulation"]["rmse_a"]["values"]
+        assert len(values) == 4 and np.all(np.isfinite(values))
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["run", "nonexistent"], "unknown experiment 'nonexistent'; available: static, dynamic"),
+        (["run", "lorenz63", "--dim", "3"], "--dim does not apply to lorenz63"),
+        (["run", "dynamic", "--particles", "ten"], "expected integers separated by commas"),
+        (["run", "dynamic", "--particles", "0"], "--particles must be a positive integer"),
+        (["run", "dynamic", "--methods", "enkf,magic"], "unknown method(s) magic for dynamic"),
+        (["run", "dynamic", "--dim", "2,4"], "--dim takes one value for dynamic"),
+        (["run", "dynamic", "--out", "/proc/forbidden"], "cannot write to output directory"),
+        (["frobnicate"], "invalid choice: 'frobnicate'"),
+    ],
+)
+def test_bad_names_options_and_directories_are_one_line_errors(arguments, message):
+    process = _cli(*arguments)
+    _, error = process.communicate(timeout=120)
+    assert process.returncode == 2
+    assert message in error and error.count("\n") == 1 and "Traceback" not in error
+
+
+def test_a_directory_holding_another_run_is_refused(tmp_path):
+    from ot_filter.runner.run import _config
+    from ot_filter.runner.store import RunDirectory
+
+    options = resolve_options("dynamic", {"particles": 50}, quick=True)
+    RunDirectory.open(str(tmp_path), _config(options, True, []), ("experiment", "options"))
+    other = resolve_options("dynamic", {"particles": 60}, quick=True)
+    with pytest.raises(RunError, match="holds a different run"):
+        RunDirectory.open(str(tmp_path), _config(other, True, []), ("experiment", "options"))
+
+
+def test_list_names_every_experiment():
+    process = _cli("list")
+    output, _ = process.communicate(timeout=120)
+    assert process.returncode == 0
+    for name in EXPERIMENTS:
+        assert name in output
+
+
+def test_in_scan_progress_reports_and_is_absent_when_off():
+    model = otf.models.lorenz63()
+    _, observations = otf.simulate(jax.random.key(0), model, 100)
+    reports = []
+    with progress_listener(lambda done, total: reports.append((done, total))):
+        otf.run_filter(jax.random.key(1), model, otf.enkf(), observations, 10, save_every=7,
+                       progress=30).mean.block_until_ready()
+        assert reports == [(30, 100), (60, 100), (90, 100), (100, 100)]
+        reports.clear()
+        otf.run_filter(jax.random.key(1), model, otf.enkf(), observations, 10, save_every=7).mean.block_until_ready()
+        assert reports == []
+    with pytest.raises(ValueError, match="progress must be an int >= 0"):
+        otf.run_filter(jax.random.key(1), model, otf.enkf(), observations, 10, progress=-1)
