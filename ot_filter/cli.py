@@ -178,7 +178,9 @@ def _gallery(out: str, runs: str) -> list[str]:
         raise RunError(f"cannot write to output directory {out!r}: {error.strerror or error}") from None
     copied = []
     for name in EXPERIMENTS:
+        start = time.perf_counter()
         result = run_experiment(name, out=os.path.join(runs, name), quick=True)
+        print(f"{name}: {time.perf_counter() - start:.0f} s")
         for figure in result.figures:
             target = os.path.join(out, f"{name}__{os.path.basename(figure)}")
             shutil.copyfile(figure, target + ".tmp")

@@ -83,19 +83,22 @@ def _save(fig, out, name):
     return save_figure(fig, out, name)
 
 
-def _band(ax, x, curve, label, **style):
+def _band(ax, x, curve, label, log=False, **style):
+    """The mean curve with a +-2 s.e. band (on a log axis the band stops at a fifth of the mean)."""
     mean, se = np.asarray(curve["mean"]), np.asarray(curve["se"])
     line, = ax.plot(x, mean, label=label, **style)
-    ax.fill_between(x, mean - 2 * se, mean + 2 * se, color=line.get_color(), alpha=0.2, lw=0)
+    lower = np.maximum(mean - 2 * se, mean / 5) if log else mean - 2 * se
+    ax.fill_between(x, lower, mean + 2 * se, color=line.get_color(), alpha=0.2, lw=0)
 
 
-def _errorbar_vs(ax, groups, axis, metric, method_label):
+def _errorbar_vs(ax, groups, axis, metric, method_label, log=False):
     for method in dict.fromkeys(g["method"] for g in groups):
         rows = sorted((g for g in groups if g["method"] == method), key=lambda g: g[axis])
         x = [g[axis] for g in rows]
-        mean = [g["per_simulation"][metric]["mean"] for g in rows]
-        se = [2 * g["per_simulation"][metric]["se"] for g in rows]
-        ax.errorbar(x, mean, yerr=se, marker="o", capsize=3, label=method_label(method))
+        mean = np.array([g["per_simulation"][metric]["mean"] for g in rows])
+        se = np.array([2 * g["per_simulation"][metric]["se"] for g in rows])
+        lower = np.minimum(se, 0.8 * mean) if log else se  # a log axis cannot show mean - 2 s.e. <= 0
+        ax.errorbar(x, mean, yerr=(lower, se), marker="o", capsize=3, label=method_label(method))
 
 
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer",
@@ -209,7 +212,7 @@ def _dynamic_plot(options, groups, out):
     else:
         axis = "dim" if experiment == "dynamic-dims" else "particles"
         fig, ax = plt.subplots(figsize=(6, 4))
-        _errorbar_vs(ax, groups, axis, "mmd_average", _label)
+        _errorbar_vs(ax, groups, axis, "mmd_average", _label, log=axis == "particles")
         if axis == "particles":
             ax.set_xscale("log")
             ax.set_yscale("log")
@@ -249,7 +252,7 @@ def _lorenz63_plot(options, groups, out):
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for g in groups:
-        _band(ax, g["arrays"]["times"], g["curves"]["mse"], _label(g["method"]))
+        _band(ax, g["arrays"]["times"], g["curves"]["mse"], _label(g["method"]), log=True)
     ax.set(yscale="log", xlabel="time t", ylabel="MSE of the ensemble mean",
            title=f"Lorenz-63 (x1, x3 observed), N = {options['particles'][0]}, "
                  f"{options['simulations']} simulations")
@@ -315,7 +318,7 @@ def _lorenz96_plot(options, groups, out):
     for g in groups:
         mean = g["per_simulation"]["rmse_a"]["mean"]
         _band(ax, g["arrays"]["times"], g["curves"]["rmse"],
-              f"{_label(g['method'])} (n = {g['dim']}): rmse.a {mean:.2f}")
+              f"{_label(g['method'])} (n = {g['dim']}): rmse.a {mean:.2f}", log=True)
     ax.set(yscale="log", xlabel="time (model units)", ylabel="analysis RMSE",
            title=f"Lorenz-96 twin experiment, N = {options['particles'][0]} "
                  f"({options['simulations']} simulations; noise std 1)")
@@ -356,7 +359,8 @@ def _continuous_plot(options, groups, out):
     fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 3.4), sharey=True, squeeze=False)
     for ax, g in zip(axes[0], groups):
         a = g["arrays"]
-        ax.hist(a["final_particles"], bins=80, range=(-3, 3), density=True, alpha=0.6, label="particles")
+        bins = int(np.clip(len(a["final_particles"]) // 12, 20, 80))  # ~12 particles a bin or more
+        ax.hist(a["final_particles"], bins=bins, range=(-3, 3), density=True, alpha=0.6, label="particles")
         ax.plot(a["grid"], a["exact_final"], "k", lw=1.5, label="exact posterior")
         ax.set(xlim=(-3, 3), xlabel="state x", title=f"{_label(g['method'])}, t = {a['times'][-1]:.2f}")
     axes[0, 0].set_ylabel("density")
@@ -387,14 +391,14 @@ EXPERIMENTS = {
             "dynamic-dims", "the dynamic example's MMD vs state dimension (sweep)",
             dict(_COMMON, particles=(1000,), dim=(2, 4, 6, 8, 10), steps=20, simulations=20,
                  methods=("enkf", "sir", "ot")),
-            dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2, methods=("enkf", "sir")),
+            dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2),
             ("dim",), ("enkf", "sir", "ot"), _dynamic_cell, _dynamic_plot,
         ),
         Experiment(
             "dynamic-particles", "the dynamic example's MMD vs particle count (sweep)",
             dict(_COMMON, particles=(100, 200, 400, 800, 1600), dim=(2,), steps=20, simulations=20,
                  methods=("enkf", "sir", "ot")),
-            dict(particles=(100, 400), steps=12, simulations=2, block=2, methods=("enkf", "sir")),
+            dict(particles=(100, 400), steps=12, simulations=2, block=2),
             ("particles",), ("enkf", "sir", "ot"), _dynamic_cell, _dynamic_plot,
         ),
         Experiment(
