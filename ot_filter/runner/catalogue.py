@@ -101,6 +101,23 @@ def _errorbar_vs(ax, groups, axis, metric, method_label, log=False):
         ax.errorbar(x, mean, yerr=(lower, se), marker="o", capsize=3, label=method_label(method))
 
 
+def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=False, ylim=None):
+    """One panel per method: the first simulation's particles (coordinate ``component``) at the
+    saved times, the truth, and optionally its mirror image (the other mode of x -> x^2)."""
+    fig, axes = plt.subplots(len(groups), 1, figsize=(7, 2.4 * len(groups)), sharex=True, squeeze=False)
+    for ax, g in zip(axes[:, 0], groups):
+        a = g["arrays"]
+        times = np.repeat(a[times_key][:, None], a["particles"].shape[1], axis=1)
+        ax.scatter(times, a["particles"][:, :, component], s=1, alpha=alpha, color="tab:blue")
+        ax.plot(a["times"], a["states"][:, component], "k-", lw=1.5, label="truth")
+        if mirror:
+            ax.plot(a["times"], -a["states"][:, component], "k:", lw=1, label="mirror mode")
+        ax.set(ylabel=ylabel, title=f"{_label(g['method'])} particles (first simulation)", ylim=ylim)
+        ax.legend(loc="upper right", fontsize=8)
+    axes[-1, 0].set_xlabel("time t")
+    return fig
+
+
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer",
           "constant": "FPF, constant gain", "kernel": "FPF, kernel gain", "learned": "FPF, learned gain"}
 
@@ -198,16 +215,7 @@ def _dynamic_plot(options, groups, out):
         ax.legend()
         ax.grid(alpha=0.3)
         paths.append(_save(fig, out, "mmd_over_time.png"))
-        fig, axes = plt.subplots(len(groups), 1, figsize=(7, 2.4 * len(groups)), sharex=True, squeeze=False)
-        for ax, g in zip(axes[:, 0], groups):
-            a = g["arrays"]
-            times = np.repeat(a["times"][:, None], a["particles"].shape[1], axis=1)
-            ax.scatter(times, a["particles"][:, :, 0], s=1, alpha=0.1, color="tab:blue")
-            ax.plot(a["times"], a["states"][:, 0], "k-", lw=1.5, label="truth")
-            ax.plot(a["times"], -a["states"][:, 0], "k:", lw=1, label="mirror mode")
-            ax.set(ylabel="$x_1$", title=f"{_label(g['method'])} particles (first simulation)")
-            ax.legend(loc="upper right", fontsize=8)
-        axes[-1, 0].set_xlabel("time t")
+        fig = _particle_panels(plt, groups, "times", 0, "$x_1$", alpha=0.1, mirror=True)
         paths.append(_save(fig, out, "particles_over_time.png"))
     else:
         axis = "dim" if experiment == "dynamic-dims" else "particles"
@@ -260,16 +268,7 @@ def _lorenz63_plot(options, groups, out):
     ax.legend()
     ax.grid(alpha=0.3, which="both")
     paths = [_save(fig, out, "lorenz63_mse.png")]
-    fig, axes = plt.subplots(len(groups), 1, figsize=(7, 2.4 * len(groups)), sharex=True, squeeze=False)
-    for ax, g in zip(axes[:, 0], groups):
-        a = g["arrays"]
-        times = np.repeat(a["saved_times"][:, None], a["particles"].shape[1], axis=1)
-        ax.scatter(times, a["particles"][:, :, 1], s=1, alpha=0.05, color="tab:blue")
-        ax.plot(a["times"], a["states"][:, 1], "k-", lw=1.2, label="truth")
-        ax.set(ylabel="$x_2$ (unobserved)", title=f"{_label(g['method'])} particles (first simulation)",
-               ylim=(-40, 40))
-        ax.legend(loc="upper right", fontsize=8)
-    axes[-1, 0].set_xlabel("time t")
+    fig = _particle_panels(plt, groups, "saved_times", 1, "$x_2$ (unobserved)", alpha=0.05, ylim=(-40, 40))
     paths.append(_save(fig, out, "lorenz63_particles.png"))
     return paths
 
