@@ -11,6 +11,7 @@ from ot_filter.continuous import SDEModel
 from ot_filter.filtering import FilterResult, run_filter
 from ot_filter.kalman import KalmanResult, kalman_filter
 from ot_filter.model import StateSpaceModel, simulate
+from ot_filter.sharding import particle_sharding
 from ot_filter.updates import (
     BayesUpdate,
     EnKFInfo,
@@ -45,6 +46,7 @@ __all__ = [
     "metrics",
     "models",
     "ot",
+    "particle_sharding",
     "reference",
     "resample_indices",
     "run_filter",

@@ -81,6 +81,7 @@ def run_filter(
     num_active: Array | int | None = None,
     update_first: bool = False,
     progress: int = 0,
+    particle_sharding: jax.sharding.NamedSharding | None = None,
 ) -> FilterResult:
     """Filters a sequence of observations with a particle Bayes update.
 
@@ -105,6 +106,9 @@ def run_filter(
         filter at t_{k+1}.
       progress: report every this many steps to ``ot_filter.progress`` listeners (0: off, no
         callback compiled in; static).
+      particle_sharding: split the particles over devices, e.g.
+        ``ot_filter.particle_sharding()`` (N divisible by the device count; static). Same key,
+        same result as on one device up to the rounding of cross-device sums (``sharding.py``).
 
     Returns:
       A ``FilterResult``.
@@ -141,9 +145,18 @@ def run_filter(
     if save_every > num_steps:
         save_every = 0  # no step would be saved
     progress = check_progress(progress)
+    if particle_sharding is not None:
+        devices = particle_sharding.mesh.size
+        if not isinstance(particle_sharding, jax.sharding.NamedSharding):
+            raise TypeError("particle_sharding must be a NamedSharding, e.g. ot_filter.particle_sharding()")
+        if int(num_particles) % devices:
+            raise ValueError(
+                f"num_particles = {num_particles} must be divisible by the {devices} devices of "
+                f"particle_sharding"
+            )
     result = _run_filter(
         key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
-        initial_particles, num_active, bool(update_first), progress,
+        initial_particles, num_active, bool(update_first), progress, particle_sharding,
     )
     saved_steps = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
     return result._replace(saved_steps=saved_steps)
@@ -175,16 +188,34 @@ def _check_num_active(num_active, num_particles: int) -> Array:
     return jnp.asarray(num_active, jnp.int32)
 
 
-@partial(jax.jit, static_argnames=("update", "num_particles", "save_every", "update_first", "progress"))
+@partial(jax.jit, static_argnames=("update", "num_particles", "save_every", "update_first", "progress",
+                                   "particle_sharding"))
 def _run_filter(
     key, model, update, observations, num_particles, save_every, initial_particles, num_active,
-    update_first, progress,
+    update_first, progress, particle_sharding,
 ):
+    if particle_sharding is None:
+        return _filter_body(key, model, update, observations, num_particles, save_every,
+                            initial_particles, num_active, update_first, progress, lambda x: x)
+    with jax.sharding.use_abstract_mesh(particle_sharding.mesh.abstract_mesh):  # for sharding.replicated
+        return _filter_body(
+            key, model, update, observations, num_particles, save_every, initial_particles,
+            num_active, update_first, progress,
+            lambda x: jax.lax.with_sharding_constraint(x, particle_sharding),
+        )
+
+
+def _filter_body(
+    key, model, update, observations, num_particles, save_every, initial_particles, num_active,
+    update_first, progress, place,
+):
+    """The filter's trace; ``place`` lays a particle array ``[N, ...]`` out on the devices."""
     init_key, state_key, steps_key = jax.random.split(key, 3)
     if initial_particles is None:
         particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
     else:
         particles = jnp.asarray(initial_particles)
+    particles = place(particles)
     observations = observations.astype(particles.dtype)
     state = update.init(state_key, particles, model)
     if num_active is not None:
@@ -222,6 +253,7 @@ def _run_filter(
         )
         if update_first:
             particles = propagate(particles)
+        particles = place(particles)
         mean = jnp.exp(state.log_weights) @ particles
         spread = ensemble_spread(particles, state.log_weights)
         return (particles, state), (mean, spread, info, observed)

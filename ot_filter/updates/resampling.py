@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ot_filter.sharding import replicated
 from ot_filter.updates.base import count_dependent
 
 Array = jax.Array
@@ -168,4 +169,5 @@ def resample_indices(
         value = np.asarray(num_active)
         if value.shape != () or not np.issubdtype(value.dtype, np.integer) or not 1 <= value <= num:
             raise ValueError(f"num_active must be an int in [1, {num}], got {num_active!r}")
-    return RESAMPLING_SCHEMES[scheme](key, log_weights, num_active)
+    # Sharded particles: invert the cumulative weights on one replicated copy (see sharding.py).
+    return RESAMPLING_SCHEMES[scheme](key, replicated(log_weights), num_active)

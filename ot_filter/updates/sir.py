@@ -39,6 +39,7 @@ import jax.numpy as jnp
 from ot_filter._linalg import psd_sqrt, weighted_covariance
 from ot_filter.metrics import ess as effective_sample_size
 from ot_filter.model import StateSpaceModel
+from ot_filter.sharding import replicated
 from ot_filter.updates.base import (
     BayesUpdate,
     active_mask,
@@ -104,6 +105,9 @@ def sir(
         log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
         # `where`, not -inf + log l: a padding likelihood of +inf must not give NaN.
         unnormalised = jnp.where(active, state.log_weights + log_likelihoods, -jnp.inf)
+        # Sharded particles: the N weights on every device, so that their normalisation, the ESS
+        # and the resampling round as on one device (a no-op without a mesh; sharding.py).
+        unnormalised = replicated(unnormalised)
         increment = jax.nn.logsumexp(unnormalised)  # prior weights are normalised
         degenerate = ~jnp.isfinite(increment)
         log_weights = jnp.where(degenerate, state.log_weights, unnormalised - increment)
