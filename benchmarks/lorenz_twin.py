@@ -98,12 +98,14 @@ class Config(NamedTuple):
     method: str  # DAPPER's name of the method
     num_particles: int
     make_update: Callable[[], ot_filter.BayesUpdate]
-    published_rmse: float  # rmse.a in DAPPER's model file
+    published_rmse: float | None  # rmse.a in DAPPER's model file
 
 
 CONFIGS = (
     Config("L63/EnKF-Sqrt-N10", "L63", "EnKF Sqrt infl 1.02 rot", 10,
            lambda: ot_filter.enkf(inflation=1.02, perturbed=False, rotate=True), 0.60),
+    Config("L63/EnKF-PertObs-N10", "L63", "EnKF PertObs infl 1.02", 10,
+           lambda: ot_filter.enkf(inflation=1.02), None),  # no published value; cuthbert has this EnKF
     Config("L63/PartFilt-N800", "L63", "PartFilt reg 0.9 NER 0.2", 800,
            lambda: ot_filter.sir(resampling="systematic", ess_threshold=0.2, jitter=0.9), 0.28),
     Config("L96/EnKF-PertObs-N40", "L96", "EnKF PertObs infl 1.06", 40,
@@ -215,6 +217,19 @@ def run_float64_child(truth_file: Path, repeats: int) -> dict:
     return json.loads(completed.stdout)
 
 
+def run_cuthbert(python: str, truths: dict, num_seeds: int, repeats: int) -> dict:
+    """cuthbert on the same L63 truths (benchmarks/cuthbert_baseline.py in its own interpreter):
+    {config name: {"seconds": [per seed], "compile_s", "rmse_a": [per seed]}, "_meta": ...}."""
+    with tempfile.TemporaryDirectory() as directory:
+        data = Path(directory) / "l63.npz"
+        np.savez(data, states=truths["L63"]["states"][:num_seeds],
+                 observations=truths["L63"]["observations"][:num_seeds])
+        command = [python, str(BENCHMARKS / "cuthbert_baseline.py"), "--data", str(data),
+                   "--repeats", str(repeats), "--api", "online"]
+        completed = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=True)
+    return json.loads(completed.stdout)
+
+
 def run_dapper(python: str, num_seeds: int) -> dict:
     command = [python, str(BENCHMARKS / "dapper_baseline.py"), "--seeds", str(num_seeds)]
     completed = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=True)
@@ -258,8 +273,20 @@ def markdown_report(report: dict) -> str:
             f"| {_fmt(f64 and f64['rmse_a_mean'])} / {_fmt(f64 and f64['rmse_a_median'])} "
             f"| {_fmt(dapper and dapper['rmse_a_mean'])} "
             f"/ {_fmt(dapper and dapper['rmse_a_median'])} "
-            f"| {row['published_rmse']:.2f} |"
+            f"| {_fmt(row['published_rmse'], 2)} |"
         )
+    with_cuthbert = [row for row in report["rows"] if row.get("cuthbert")]
+    if with_cuthbert:
+        lines += ["", f"cuthbert {meta['cuthbert'].get('cuthbert_version', '?')} on the same truths and "
+                  "machine (float32; its own scan keeping only the mean, like save_every=0; cuthbert "
+                  "also computes the log-likelihood, and on CPU its resampling calls numba on the host):",
+                  "", "| configuration | ot_filter s | cuthbert s | cuthbert / ot_filter | ot_filter rmse.a "
+                  "mean / median | cuthbert rmse.a mean / median |", "|---|---:|---:|---:|---:|---:|"]
+        for row in with_cuthbert:
+            c, f = row["cuthbert"], row["float32"]
+            lines.append(f"| {row['name']} | {_fmt(f['seconds'], 4)} | {_fmt(c['seconds'], 4)} | "
+                         f"{row['cuthbert_ratio']:.1f}x | {_fmt(f['rmse_a_mean'])} / {_fmt(f['rmse_a_median'])} | "
+                         f"{_fmt(c['rmse_a_mean'])} / {_fmt(c['rmse_a_median'])} |")
     lines += ["", "Per-seed rmse.a (f32 | f64 on the same observations | DAPPER, own truths):", ""]
     for row in report["rows"]:
         per_seed = " ".join(f"{v:.3f}" for v in row["float32"]["rmse_a"])
@@ -274,7 +301,7 @@ def markdown_report(report: dict) -> str:
         for row in report["rows"]
         for label, runs in (("f32", row["float32"]), ("f64", row.get("float64")),
                             ("DAPPER", row.get("dapper")))
-        if runs and any(v > 2 * row["published_rmse"] for v in runs["rmse_a"])
+        if runs and row["published_rmse"] and any(v > 2 * row["published_rmse"] for v in runs["rmse_a"])
     ]
     if divergent:
         lines += ["", "Divergent runs (rmse.a above twice the published value; they dominate "
@@ -290,7 +317,8 @@ def markdown_report(report: dict) -> str:
     return "\n".join(lines)
 
 
-def build_rows(float32: dict, float64: dict | None, dapper: dict | None) -> list[dict]:
+def build_rows(float32: dict, float64: dict | None, dapper: dict | None,
+               cuthbert: dict | None = None) -> list[dict]:
     rows = []
     for config in CONFIGS:
         row = {
@@ -320,6 +348,12 @@ def build_rows(float32: dict, float64: dict | None, dapper: dict | None) -> list
                 rmse_a_median=float(np.median(runs["rmse_a"])),
             )
             row["speedup"] = row["dapper"]["seconds"] / row["float32"]["seconds"]
+        if cuthbert is not None and config.name in cuthbert:
+            runs = cuthbert[config.name]
+            row["cuthbert"] = dict(runs, seconds_all=runs["seconds"], seconds=statistics.median(runs["seconds"]),
+                                   rmse_a_mean=float(np.mean(runs["rmse_a"])),
+                                   rmse_a_median=float(np.median(runs["rmse_a"])))
+            row["cuthbert_ratio"] = row["cuthbert"]["seconds"] / row["float32"]["seconds"]
         rows.append(row)
     return rows
 
@@ -334,6 +368,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, help="timed runs (default 5, quick 2)")
     parser.add_argument("--dapper-python", help="interpreter with DAPPER 1.7.1 (runs the baseline)")
     parser.add_argument("--dapper-seeds", type=int, help="DAPPER truths (default 8, quick 1)")
+    parser.add_argument("--cuthbert-python", help="interpreter with cuthbert (runs its L63 baseline "
+                        "on the same truths)")
     parser.add_argument("--no-float64", action="store_true", help="skip the float64 child run")
     parser.add_argument("--output-dir", type=Path, default=RESULTS)
     parser.add_argument("--float64-child", type=Path, help=argparse.SUPPRESS)
@@ -368,6 +404,7 @@ def main() -> None:
                                     for field, array in truth.items()})
             float64 = run_float64_child(truth_file, repeats)
     dapper = run_dapper(args.dapper_python, dapper_seeds) if args.dapper_python else None
+    cuthbert = run_cuthbert(args.cuthbert_python, truths, num_seeds, repeats) if args.cuthbert_python else None
 
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M"),
@@ -388,8 +425,10 @@ def main() -> None:
         dapper_meta = dapper.pop("_meta")
         meta.update(dapper=dapper_meta["dapper"], dapper_numpy=dapper_meta["numpy"],
                     dapper_stats=dapper_meta["stats"], dapper_seeds=len(dapper_meta["seeds"]))
+    if cuthbert is not None:
+        meta.update(cuthbert=cuthbert.pop("_meta"))
     meta["total_seconds"] = time.perf_counter() - start
-    report = {"meta": meta, "rows": build_rows(float32, float64, dapper)}
+    report = {"meta": meta, "rows": build_rows(float32, float64, dapper, cuthbert)}
 
     args.output_dir.mkdir(parents=True, exist_ok=True)
     markdown = markdown_report(report)
