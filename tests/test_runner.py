@@ -89,6 +89,7 @@ def test_interrupted_sweep_resumes_and_reproduces_the_uninterrupted_metrics(tmp_
         (["run", "dynamic", "--particles", "0"], "--particles must be a positive integer"),
         (["run", "dynamic", "--methods", "enkf,magic"], "unknown method(s) magic for dynamic"),
         (["run", "dynamic", "--dim", "2,4"], "--dim takes one value for dynamic"),
+        (["run", "static", "--noise", "0.4,-1"], "--noise values must be > 0"),
         (["run", "dynamic", "--out", "/proc/forbidden"], "cannot write to output directory"),
         (["frobnicate"], "invalid choice: 'frobnicate'"),
     ],

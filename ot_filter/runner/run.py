@@ -74,6 +74,8 @@ def resolve_options(name: str, overrides: dict | None = None, quick: bool = Fals
         raise RunError(f"--particles must be >= 2, got {min(options['particles'])}")
     if isinstance(options.get("seed"), bool) or not isinstance(options.get("seed"), (int, np.integer)) or options["seed"] < 0:
         raise RunError(f"--seed must be an integer >= 0, got {options.get('seed')!r}")
+    if "noise" in options and not all(isinstance(v, (int, float)) and v > 0 for v in options["noise"]):
+        raise RunError(f"--noise values must be > 0, got {options['noise']}")
     if "dt" in options and not (isinstance(options["dt"], (int, float)) and options["dt"] > 0):
         raise RunError(f"--dt must be > 0, got {options['dt']!r}")
     for key in ("particles", "dim", "noise"):
