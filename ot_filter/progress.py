@@ -6,12 +6,13 @@ listeners registered with ``progress_listener``. With ``progress=0`` (the defaul
 program contains no callback at all. Under ``vmap`` every simulation reports the same step; the
 listeners get the largest. ``every_fraction`` picks a k for about 20 reports a run.
 
-Cost (``benchmarks/results/progress_overhead.md``): about 0.3 ms per report on the host plus a
-``lax.cond`` per step; +1 % on the long filters the reports are for (OT filter, kernel-gain
-FPF), +3-4 % on sub-millisecond steps (Lorenz-96 EnKF, constant-gain FPF), but +70 % on a
-15 ms run (Lorenz-63 EnKF, N = 10), which needs no progress report. Scanning in chunks with
-the callback between them was measured too: -40 % on that tiny run but +13 % on the
-sub-millisecond ones (the nested loop costs more than the condition).
+Cost (``benchmarks/results/progress_overhead.md``, medians of 15 alternating runs): about
+0.3 ms per report on the host plus a ``lax.cond`` per step. Under 1 % on the long filters the
+reports are for (OT filter: within noise; kernel-gain FPF: +0.4 %), +5 % on a 0.9 s constant-gain
+FPF, +10 % on a 0.37 s Lorenz-96 EnKF (an earlier 9-run measurement gave +4 % / +3 %: these
+sub-second runs are noisy on a shared 2-core machine), +66 % on a 17 ms run (Lorenz-63 EnKF,
+N = 10). Scanning in chunks with the callback between them was measured too: better on the tiny
+run (+40 %), worse on the sub-second ones (+13 %); rejected.
 """
 
 from __future__ import annotations
