@@ -31,6 +31,12 @@ What is measured:
 - precision: the same truths/observations (simulated in float32 by this process) are filtered
   in float32 (JAX's default) here and in float64 by a child process of this script
   (``JAX_ENABLE_X64=1``), so the float32/float64 comparison is paired seed by seed.
+- fast RNG: a second child times the same float32 code with ``JAX_THREEFRY_PARTITIONABLE=0``
+  (JAX's older Threefry layout: different random streams, same distributions). On CPU its
+  random bits cost several times less, which matters for the perturbed-observation EnKF; keep
+  the default when sharding the particles over devices.
+- vmapped: seconds per seed of the program that runs all ``--seeds`` twins at once (median of
+  up to 3 calls), i.e. throughput when a user filters several truths or a sweep at once.
 - compile time: ``jax.jit(twin).lower(...).compile()`` of one single-seed twin experiment
   (filter + rmse.a), i.e. tracing, lowering and XLA compilation.
 - seconds: wall time of one whole single-seed twin experiment after compilation (the filter over
@@ -178,9 +184,11 @@ def measure_ot_filter(truths, repeats: int) -> dict:
         start = time.perf_counter()
         batched = jax.jit(jax.vmap(twin)).lower(keys, observations, states).compile()
         batch_compile_seconds = time.perf_counter() - start
-        start = time.perf_counter()
-        rmse_a, resample_fraction = jax.block_until_ready(batched(keys, observations, states))
-        batch_seconds = time.perf_counter() - start
+        batch_seconds = []
+        for _ in range(min(repeats, 3)):
+            start = time.perf_counter()
+            rmse_a, resample_fraction = jax.block_until_ready(batched(keys, observations, states))
+            batch_seconds.append(time.perf_counter() - start)
 
         rmse_a = np.asarray(rmse_a, float)
         entry = {
@@ -188,7 +196,10 @@ def measure_ot_filter(truths, repeats: int) -> dict:
             "compile_seconds": compile_seconds,
             "seconds": statistics.median(seconds),
             "seconds_all": seconds,
-            "batch_seconds": batch_seconds,
+            "batch_seconds": statistics.median(batch_seconds),
+            "batch_seconds_all": batch_seconds,
+            "batch_seconds_per_seed": statistics.median(batch_seconds) / num_seeds,
+            "threefry_partitionable": bool(jax.config.jax_threefry_partitionable),
             "batch_compile_seconds": batch_compile_seconds,
             "rmse_a": rmse_a.tolist(),
             "rmse_a_mean": float(np.mean(rmse_a)),
@@ -208,10 +219,11 @@ def measure_ot_filter(truths, repeats: int) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def run_float64_child(truth_file: Path, repeats: int) -> dict:
-    """Re-runs this script with JAX_ENABLE_X64=1 on the same truths; returns its JSON."""
-    env = dict(os.environ, JAX_ENABLE_X64="1")
-    command = [sys.executable, str(Path(__file__).resolve()), "--float64-child", str(truth_file),
+def run_child(truth_file: Path, repeats: int, **config: str) -> dict:
+    """Re-runs this script's ot_filter measurements on the same truths with JAX configured by
+    environment variables (e.g. JAX_ENABLE_X64="1"); returns its JSON."""
+    env = dict(os.environ, **config)
+    command = [sys.executable, str(Path(__file__).resolve()), "--child", str(truth_file),
                "--repeats", str(repeats)]
     completed = subprocess.run(command, env=env, stdout=subprocess.PIPE, text=True, check=True)
     return json.loads(completed.stdout)
@@ -275,6 +287,32 @@ def markdown_report(report: dict) -> str:
             f"/ {_fmt(dapper and dapper['rmse_a_median'])} "
             f"| {_fmt(row['published_rmse'], 2)} |"
         )
+    with_dapper = [row for row in report["rows"] if row.get("dapper")]
+    if with_dapper:
+        lines += [
+            "", "Speed per twin experiment (1001 cycles; speed-up = DAPPER s / ot_filter s; "
+            "'vmapped' = all seeds in one compiled program, seconds per seed; 'fast RNG' = the "
+            "same code with JAX_THREEFRY_PARTITIONABLE=0):", "",
+            "| configuration | DAPPER s | ot_filter s | speed-up | vmapped s/seed | speed-up "
+            "| fast RNG s | speed-up | fast RNG vmapped s/seed | speed-up |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for row in with_dapper:
+            f, fast = row["float32"], row.get("fast_rng")
+            cells = [row["name"], _fmt(row["dapper"]["seconds"], 4), _fmt(f["seconds"], 4),
+                     f"{row['speedup']:.1f}x", _fmt(f["batch_seconds_per_seed"], 4),
+                     f"{row['speedup_batched']:.1f}x"]
+            if fast is not None:
+                cells += [_fmt(fast["seconds"], 4), f"{row['speedup_fast_rng']:.1f}x",
+                          _fmt(fast["batch_seconds_per_seed"], 4),
+                          f"{row['speedup_fast_rng_batched']:.1f}x"]
+            else:
+                cells += ["–"] * 4
+            lines.append("| " + " | ".join(cells) + " |")
+        lines += ["", "DAPPER runs one seed at a time on one core; with one process per core "
+                  f"({meta['cpu_count']} here) its throughput is at most {meta['cpu_count']}x its "
+                  "serial one, so divide the vmapped speed-ups by that for a like-for-like "
+                  "throughput comparison."]
     with_cuthbert = [row for row in report["rows"] if row.get("cuthbert")]
     if with_cuthbert:
         lines += ["", f"cuthbert {meta['cuthbert'].get('cuthbert_version', '?')} on the same truths and "
@@ -318,7 +356,7 @@ def markdown_report(report: dict) -> str:
 
 
 def build_rows(float32: dict, float64: dict | None, dapper: dict | None,
-               cuthbert: dict | None = None) -> list[dict]:
+               cuthbert: dict | None = None, fast_rng: dict | None = None) -> list[dict]:
     rows = []
     for config in CONFIGS:
         row = {
@@ -333,6 +371,8 @@ def build_rows(float32: dict, float64: dict | None, dapper: dict | None,
         }
         if float64 is not None:
             row["float64"] = float64[config.name]
+        if fast_rng is not None:
+            row["fast_rng"] = fast_rng[config.name]
         if dapper is not None and config.name in dapper:
             runs = dapper[config.name]
             if runs["analyses_averaged"] != row["analyses_averaged"]:
@@ -347,7 +387,13 @@ def build_rows(float32: dict, float64: dict | None, dapper: dict | None,
                 rmse_a_mean=float(np.mean(runs["rmse_a"])),
                 rmse_a_median=float(np.median(runs["rmse_a"])),
             )
-            row["speedup"] = row["dapper"]["seconds"] / row["float32"]["seconds"]
+            dapper_seconds = row["dapper"]["seconds"]
+            row["speedup"] = dapper_seconds / row["float32"]["seconds"]
+            row["speedup_batched"] = dapper_seconds / row["float32"]["batch_seconds_per_seed"]
+            if fast_rng is not None:
+                row["speedup_fast_rng"] = dapper_seconds / row["fast_rng"]["seconds"]
+                row["speedup_fast_rng_batched"] = (
+                    dapper_seconds / row["fast_rng"]["batch_seconds_per_seed"])
         if cuthbert is not None and config.name in cuthbert:
             runs = cuthbert[config.name]
             row["cuthbert"] = dict(runs, seconds_all=runs["seconds"], seconds=statistics.median(runs["seconds"]),
@@ -371,8 +417,10 @@ def main() -> None:
     parser.add_argument("--cuthbert-python", help="interpreter with cuthbert (runs its L63 baseline "
                         "on the same truths)")
     parser.add_argument("--no-float64", action="store_true", help="skip the float64 child run")
+    parser.add_argument("--no-fast-rng", action="store_true",
+                        help="skip the child run timed with JAX_THREEFRY_PARTITIONABLE=0")
     parser.add_argument("--output-dir", type=Path, default=RESULTS)
-    parser.add_argument("--float64-child", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     num_seeds = args.seeds or (2 if args.quick else 8)
     repeats = args.repeats or (2 if args.quick else 5)
@@ -382,10 +430,8 @@ def main() -> None:
         averaged = experiment.num_observations - experiment.first_averaged
         assert averaged == experiment.analyses_averaged, (averaged, experiment)
 
-    if args.float64_child is not None:
-        if not jax.config.jax_enable_x64:
-            raise RuntimeError("the float64 child must run with JAX_ENABLE_X64=1")
-        with np.load(args.float64_child) as data:
+    if args.child is not None:
+        with np.load(args.child) as data:
             truths = {name: {"states": data[f"{name}/states"],
                              "observations": data[f"{name}/observations"]}
                       for name in EXPERIMENTS}
@@ -395,14 +441,18 @@ def main() -> None:
     start = time.perf_counter()
     truths = simulate_truths(num_seeds)
     float32 = measure_ot_filter(truths, repeats)
-    float64 = None
-    if not args.no_float64:
-        with tempfile.TemporaryDirectory() as directory:
-            truth_file = Path(directory) / "truths.npz"
-            np.savez(truth_file, **{f"{name}/{field}": array
-                                    for name, truth in truths.items()
-                                    for field, array in truth.items()})
-            float64 = run_float64_child(truth_file, repeats)
+    float64 = fast_rng = None
+    with tempfile.TemporaryDirectory() as directory:
+        truth_file = Path(directory) / "truths.npz"
+        np.savez(truth_file, **{f"{name}/{field}": array
+                                for name, truth in truths.items()
+                                for field, array in truth.items()})
+        if not args.no_float64:
+            float64 = run_child(truth_file, repeats, JAX_ENABLE_X64="1")
+        if not args.no_fast_rng:
+            # JAX's non-partitionable Threefry: other random streams, same distribution; on CPU
+            # its bits are several times cheaper (the partitionable default pays for sharding).
+            fast_rng = run_child(truth_file, repeats, JAX_THREEFRY_PARTITIONABLE="0")
     dapper = run_dapper(args.dapper_python, dapper_seeds) if args.dapper_python else None
     cuthbert = run_cuthbert(args.cuthbert_python, truths, num_seeds, repeats) if args.cuthbert_python else None
 
@@ -428,7 +478,7 @@ def main() -> None:
     if cuthbert is not None:
         meta.update(cuthbert=cuthbert.pop("_meta"))
     meta["total_seconds"] = time.perf_counter() - start
-    report = {"meta": meta, "rows": build_rows(float32, float64, dapper, cuthbert)}
+    report = {"meta": meta, "rows": build_rows(float32, float64, dapper, cuthbert, fast_rng)}
 
     args.output_dir.mkdir(parents=True, exist_ok=True)
     markdown = markdown_report(report)

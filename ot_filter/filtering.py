@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ot_filter.metrics import spread as ensemble_spread
-from ot_filter.model import StateSpaceModel, model_dimensions
+from ot_filter.model import StateSpaceModel, model_dimensions, with_observation_noise_factors
 from ot_filter.updates.base import BayesUpdate, uniform_log_weights
 from ot_filter.progress import maybe_report
 
@@ -211,6 +211,7 @@ def _filter_body(
 ):
     """The filter's trace; ``place`` lays a particle array ``[N, ...]`` out on the devices."""
     init_key, state_key, steps_key = jax.random.split(key, 3)
+    model = with_observation_noise_factors(model)  # R factored once, not at every step
     if initial_particles is None:
         particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
     else:

@@ -65,6 +65,10 @@ class StateSpaceModel(NamedTuple):
       observation_noise_cov: optional ``R[m, m]`` for additive Gaussian noise.
       parameters: optional pytree of arrays a built-in model keeps (e.g. the matrices of a
         linear-Gaussian model for the exact Kalman filter).
+      observation_noise_factors: optional ``(L, L^{-1})``, the Cholesky factor of R and its
+        inverse. Leave it None: ``run_filter`` fills it once before its scan (see
+        ``with_observation_noise_factors``) so that the EnKF does not refactor the constant R at
+        every step; updates called directly factor R themselves.
     """
 
     sample_initial: Callable[[Array], Array]
@@ -74,6 +78,7 @@ class StateSpaceModel(NamedTuple):
     observation_function: Callable[[Array], Array] | None = None
     observation_noise_cov: Array | None = None
     parameters: Any = None
+    observation_noise_factors: tuple[Array, Array] | None = None
 
     @property
     def has_gaussian_observation_noise(self) -> bool:
@@ -91,7 +96,7 @@ _FUNCTION_FIELDS = (
 
 
 def _flatten(model: StateSpaceModel):
-    children = (model.observation_noise_cov, model.parameters)
+    children = (model.observation_noise_cov, model.parameters, model.observation_noise_factors)
     static = tuple(getattr(model, name) for name in _FUNCTION_FIELDS)
     return children, static
 
@@ -102,6 +107,33 @@ def _unflatten(static, children) -> StateSpaceModel:
 
 # Functions are static aux data (hashable by identity); arrays are traced leaves.
 jax.tree_util.register_pytree_node(StateSpaceModel, _flatten, _unflatten)
+
+
+def with_observation_noise_factors(model: StateSpaceModel) -> StateSpaceModel:
+    """``model`` with ``observation_noise_factors = (L, L^{-1})`` of its R (unchanged without R).
+
+    Called by ``run_filter`` outside its scan. The factors must stay those of the model's R, so
+    this is done per run, never stored on a model that a user may ``_replace`` R in: inside a
+    ``lax.cond`` branch (the update of a step that has an observation) XLA cannot hoist R's
+    loop-invariant factorisation out of the loop, and on Lorenz-96 (m = 40) refactoring R at
+    every step was a third of a square-root EnKF cycle.
+    """
+    if model.observation_noise_cov is None:
+        return model
+    noise_cov = jnp.asarray(model.observation_noise_cov)
+    chol = jnp.linalg.cholesky(noise_cov)
+    inverse = jax.scipy.linalg.solve_triangular(
+        chol, jnp.eye(noise_cov.shape[0], dtype=chol.dtype), lower=True
+    )
+    return model._replace(observation_noise_factors=(chol, inverse))
+
+
+def observation_noise_factors(model: StateSpaceModel, dtype) -> tuple[Array, Array]:
+    """``(L, L^{-1})`` of the model's R in ``dtype``: the stored ones, else computed here."""
+    if model.observation_noise_factors is None:
+        model = with_observation_noise_factors(model)
+    chol, inverse = model.observation_noise_factors
+    return jnp.asarray(chol, dtype), jnp.asarray(inverse, dtype)
 
 
 def model_dimensions(model: StateSpaceModel) -> tuple[int, int]:

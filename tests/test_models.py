@@ -83,3 +83,13 @@ def test_model_builders_reject_bad_input():
         models.linear_gaussian(eye, eye, np.eye(3), eye, np.zeros(2), eye)
     with pytest.raises(ValueError, match="num_steps"):
         otf.simulate(jax.random.key(0), models.lorenz63(), 0)
+
+
+def test_lorenz96_vector_field_matches_its_definition():
+    x = jax.random.normal(jax.random.key(0), (3, 7))  # batched: a leading axis of members
+    got = np.asarray(otf.models.lorenz.lorenz96_vector_field(x, 8.0))
+    x = np.asarray(x)
+    n = x.shape[-1]
+    expected = np.array([[(x[b, (i + 1) % n] - x[b, i - 2]) * x[b, i - 1] - x[b, i] + 8.0
+                          for i in range(n)] for b in range(3)])
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-5)

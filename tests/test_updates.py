@@ -264,3 +264,18 @@ def test_sir_jitter_covariance_uses_the_weights():
     weighted = (anomalies.T * weights) @ anomalies / (1 - np.sum(weights**2))
     expected = (2.0 * num ** (-1.0 / 6.0)) ** 2 * weighted
     np.testing.assert_allclose(np.cov(np.asarray(noise, np.float64).T), expected, atol=5 * np.sqrt(2 / num) * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("perturbed", [True, False])
+def test_enkf_with_precomputed_noise_factors_is_the_same_update(x64, perturbed):
+    # run_filter factors R once (model.observation_noise_factors); the update must not change.
+    model, particles, y, (H, R) = one_step_problem()
+    prepared = otf.model.with_observation_noise_factors(model)
+    chol, inverse = prepared.observation_noise_factors
+    np.testing.assert_allclose(chol @ chol.T, R, atol=1e-12)
+    np.testing.assert_allclose(inverse @ chol, np.eye(2), atol=1e-12)
+    update = otf.enkf(perturbed=perturbed)
+    state = update.init(None, particles)
+    direct, _, _ = update.apply(jax.random.key(1), state, particles, y, model)
+    cached, _, _ = update.apply(jax.random.key(1), state, particles, y, prepared)
+    np.testing.assert_allclose(cached, direct, atol=1e-12)

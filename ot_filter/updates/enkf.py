@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 
 from ot_filter._linalg import masked_mean_and_anomalies, truncated_pinv_solve
-from ot_filter.model import StateSpaceModel
+from ot_filter.model import StateSpaceModel, observation_noise_factors
 from ot_filter.updates.base import (
     BayesUpdate,
     UniformWeightsState,
@@ -147,7 +147,7 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         # Exact R: Cov(h) + R is positive definite, so Cholesky suffices (cheaper than eigh).
         predicted = jax.vmap(model.observation_function)(particles)
         noise_cov = jnp.asarray(model.observation_noise_cov, particles.dtype)
-        noise_chol = jnp.linalg.cholesky(noise_cov)
+        noise_chol, _ = observation_noise_factors(model, particles.dtype)
         noise = jax.random.normal(key, predicted.shape, particles.dtype) @ noise_chol.T
         # Centred perturbations (no sampling bias), over the active particles.
         _, noise = masked_mean_and_anomalies(noise, active, num_active)
@@ -197,12 +197,11 @@ def _square_root_update(mean, anomalies, observation, model, active, num_active)
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
     predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
-    # Whitening matrix L^{-1} of the model's constant R, formed once: the whitening is then a
-    # matmul. (Triangular solves against the ensemble would become one batched LAPACK solve per
-    # member under vmap, which is slower and deadlocked jaxlib's CPU thread pool for vmaps over
-    # 128+ simulations on 2 cores.)
-    noise_chol = jnp.linalg.cholesky(jnp.asarray(model.observation_noise_cov, dtype))
-    whitening = jax.scipy.linalg.solve_triangular(noise_chol, jnp.eye(m, dtype=dtype), lower=True)
+    # Whitening matrix L^{-1} of the model's constant R (formed once per run by run_filter): the
+    # whitening is then a matmul. (Triangular solves against the ensemble would become one
+    # batched LAPACK solve per member under vmap, which is slower and deadlocked jaxlib's CPU
+    # thread pool for vmaps over 128+ simulations on 2 cores.)
+    _, whitening = observation_noise_factors(model, dtype)
 
     def over_scale(value):  # / sqrt(k - 1)
         return count_dependent(
