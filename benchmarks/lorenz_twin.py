@@ -411,7 +411,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 seeds, 2 repeats, 1 DAPPER seed")
     parser.add_argument("--seeds", type=int, help="ot_filter truths (default 8, quick 2)")
-    parser.add_argument("--repeats", type=int, help="timed runs (default 5, quick 2)")
+    parser.add_argument("--repeats", type=int, help="timed runs (default 15, quick 2)")
     parser.add_argument("--dapper-python", help="interpreter with DAPPER 1.7.1 (runs the baseline)")
     parser.add_argument("--dapper-seeds", type=int, help="DAPPER truths (default 8, quick 1)")
     parser.add_argument("--cuthbert-python", help="interpreter with cuthbert (runs its L63 baseline "
@@ -423,7 +423,7 @@ def main() -> None:
     parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     num_seeds = args.seeds or (2 if args.quick else 8)
-    repeats = args.repeats or (2 if args.quick else 5)
+    repeats = args.repeats or (2 if args.quick else 15)
     dapper_seeds = args.dapper_seeds or (1 if args.quick else 8)
 
     for experiment in EXPERIMENTS.values():  # the averaging window must match DAPPER's

@@ -9,7 +9,8 @@ update's training cost vs mini-batch, width, n and N.
   ``save_every=0``, 25 RK4 steps per cycle), and the compiled programs' memory (XLA's
   ``memory_analysis``: arguments + outputs + temporaries, the peak the program allocates).
   Fitted exponent b of time ~ N^b by least squares on log-log over N >= 10^4 (below that,
-  fixed costs dominate) and over all N.
+  fixed costs dominate) and over all N. At the smallest and largest N also the peak resident
+  memory of a fresh process that compiles and runs the filter (``ru_maxrss``).
 - dimension: Lorenz-96 (all observed, noise 1), EnKF square root N = 40 and perturbed N = 40,
   n = 40 .. 1000: one analysis step and a 20-cycle filter; fitted exponent in n.
 - ot: the OT update's outer iterations per second (one f step and ``inner_steps`` T steps each)
@@ -25,7 +26,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
+import subprocess
+import sys
 import time
 
 import jax
@@ -61,14 +65,35 @@ def exponent(xs, ys, minimum=0):
     return float(np.polyfit(logx, logy, 1)[0])
 
 
+PARTICLE_UPDATES = {
+    "SIR (systematic, ESS < 0.5 N)": lambda: otf.sir(ess_threshold=0.5),
+    "EnKF (perturbed)": lambda: otf.enkf(1.02),
+    "EnKF (square root)": lambda: otf.enkf(1.02, perturbed=False),
+}
+
+
+def run_filter_once(name: str, num: int, cycles: int) -> None:
+    """Child process: one whole Lorenz-63 filter (compile + run), then prints peak RSS in bytes."""
+    model = otf.models.lorenz63()
+    _, observations = otf.simulate(jax.random.key(0), model, cycles)
+    update = PARTICLE_UPDATES[name]()
+    mean = otf.run_filter(jax.random.key(3), model, update, observations, num, save_every=0).mean
+    assert bool(jnp.all(jnp.isfinite(mean)))
+    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)  # Linux reports KiB
+
+
+def peak_rss(name: str, num: int, cycles: int) -> int:
+    """Peak resident memory of a fresh process that filters with N particles (JAX runtime and
+    compilation included): what a user's process needs, beyond XLA's own allocation."""
+    command = [sys.executable, os.path.abspath(__file__), "--rss-child", name, str(num), str(cycles)]
+    completed = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=True)
+    return int(completed.stdout.split()[-1])
+
+
 def particle_scaling(counts, cycles: int = 20):
     model = otf.models.lorenz63()
     _, observations = otf.simulate(jax.random.key(0), model, cycles)
-    updates = {
-        "SIR (systematic, ESS < 0.5 N)": otf.sir(ess_threshold=0.5),
-        "EnKF (perturbed)": otf.enkf(1.02),
-        "EnKF (square root)": otf.enkf(1.02, perturbed=False),
-    }
+    updates = {name: make() for name, make in PARTICLE_UPDATES.items()}
     rows = {}
     for name, update in updates.items():
         rows[name] = []
@@ -91,6 +116,12 @@ def particle_scaling(counts, cycles: int = 20):
             print(f"{name:30s} N={num:8d} analysis {one['seconds'] * 1e3:9.3f} ms  cycle "
                   f"{trajectory['seconds'] / cycles * 1e3:9.3f} ms  memory {trajectory['memory_bytes'] / 2**20:8.1f} MiB",
                   flush=True)
+    # Process peak RSS at the smallest and largest N (each in a fresh process).
+    for name, row in rows.items():
+        for entry in (row[0], row[-1]):
+            entry["process_peak_rss_bytes"] = peak_rss(name, entry["N"], cycles)
+            print(f"{name:30s} N={entry['N']:8d} process peak RSS "
+                  f"{entry['process_peak_rss_bytes'] / 2**20:8.1f} MiB", flush=True)
     fits = {
         name: {
             "analysis_exponent_N>=1e4": exponent([r["N"] for r in row], [r["analysis_s"] for r in row], 10_000),
@@ -188,11 +219,16 @@ def write(out: str, results: dict) -> None:
     if "particles" in results:
         part = results["particles"]
         lines += [f"## Lorenz-63: time and memory vs N ({part['cycles']}-cycle filter, 25 RK4 steps a cycle)", "",
-                  "| update | N | analysis ms | cycle ms | filter memory MiB |", "|--|--:|--:|--:|--:|"]
+                  "| update | N | analysis ms | cycle ms | filter memory MiB | process peak RSS MiB |",
+                  "|--|--:|--:|--:|--:|--:|"]
         for name, rows in part["rows"].items():
             for r in rows:
+                rss = r.get("process_peak_rss_bytes")
                 lines.append(f"| {name} | {r['N']:,} | {r['analysis_s'] * 1e3:.3f} | {r['filter_s_per_cycle'] * 1e3:.3f} | "
-                             f"{r['filter_memory_bytes'] / 2**20:.1f} |")
+                             f"{r['filter_memory_bytes'] / 2**20:.1f} | {'-' if rss is None else f'{rss / 2**20:.0f}'} |")
+        lines += ["", "filter memory: XLA's allocation for the compiled 20-cycle filter (arguments, "
+                  "outputs, temporaries); process peak RSS: a fresh Python process that imports "
+                  "JAX, compiles and runs that filter (runtime and compiler included)."]
         lines += ["", "| update | exponent b (analysis, N >= 1e4) | (analysis, all N) | (cycle, N >= 1e4) | (memory, N >= 1e4) |",
                   "|--|--:|--:|--:|--:|"]
         for name, fit in part["fits"].items():
@@ -228,7 +264,12 @@ def main():
     parser.add_argument("--parts", default="particles,dimension,ot")
     parser.add_argument("--quick", action="store_true", help="N up to 10^4, n up to 100 (a smoke run)")
     parser.add_argument("--out", default="benchmarks/results")
+    parser.add_argument("--rss-child", nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.rss_child:
+        name, num, cycles = args.rss_child
+        run_filter_once(name, int(num), int(cycles))
+        return
     results = {"device": str(jax.devices()[0]), "jax": jax.__version__}
     existing = os.path.join(args.out, "scaling.json")
     if os.path.exists(existing) and not args.quick:  # keep the parts not rerun

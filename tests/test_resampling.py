@@ -79,3 +79,27 @@ def test_uniform_weights_keep_every_particle(scheme, num):
     """N w_i = 1 (0.99999994 after float32 rounding): each particle is kept exactly once."""
     indices = otf.resample_indices(jax.random.key(0), jnp.zeros(num), scheme)
     np.testing.assert_array_equal(np.sort(np.asarray(indices)), np.arange(num))
+
+
+@pytest.mark.parametrize("num, num_active", [(7, None), (1000, None), (1_000_000, None),
+                                             (1000, 637), (1000, 2), (1_000_000, 999_999)])
+def test_linear_time_inversion_gives_the_binary_search_indices(num, num_active):
+    # Stratified and systematic points are inverted in O(N) by strata; the ancestors must be
+    # exactly the searchsorted ones, also with zero weights (flat stretches) and padding.
+    from ot_filter.updates.resampling import _cdf, _invert_cdf, _invert_cdf_by_strata, _strata
+
+    count = num if num_active is None else num_active
+    key_w, key_zero, key_u = jax.random.split(jax.random.key(num + count), 3)
+    weights = jax.random.exponential(key_w, (num,)) ** 3  # heavy-tailed: long steps and flats
+    weights = jnp.where(jax.random.bernoulli(key_zero, 0.3, (num,)), 0.0, weights)
+    weights = jnp.where(jnp.arange(num) < count, weights, 0.0)
+    cdf = _cdf(weights)
+    strata = _strata(num, num_active)
+    # Offsets near 1 at large N: j + U rounds to j + 1 in float32, a point on the next stratum's
+    # edge (the case the neighbouring-strata comparison is for).
+    for offsets in (jax.random.uniform(key_u, (num,)), jnp.full((num,), 0.5), jnp.zeros(num),
+                    jnp.full((num,), 0.99)):
+        points = (strata + offsets[strata]) / count
+        expected = _invert_cdf(cdf, points)
+        got = _invert_cdf_by_strata(cdf, points, num_active)
+        np.testing.assert_array_equal(got, expected)

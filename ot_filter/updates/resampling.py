@@ -6,11 +6,17 @@ systematic (one uniform shared by all strata; counts are floor or ceil of N w_i 
 arithmetic) and residual
 (floor(N w_i) deterministic copies, the rest multinomial on the residual weights).
 
-All take log-weights, never exponentiate them unnormalised, and cost O(N log N) through one
-``searchsorted`` of N sorted points in the cumulative weights (multinomial gets its sorted
-uniforms in O(N) from normalised exponential spacings instead of sorting). A point that rounding
-puts on a particle of zero weight (a flat stretch of the cumulative weights, or past its end) is
-moved to the next particle of positive weight: zero-weight particles are never drawn.
+All take log-weights and never exponentiate them unnormalised. Stratified and systematic
+resampling cost O(N): their points have one tooth per stratum [j/N, (j+1)/N), so the number of
+points below each cumulative weight c_i is floor(N c_i) corrected by comparing the points of the
+neighbouring strata, and the ancestors are the running count of those numbers (a histogram and a
+cumulative sum; 3.8x faster than a binary search at N = 10^6 on a CPU, the same indices).
+Multinomial (whose sorted uniforms come in O(N) from normalised exponential spacings) and
+residual use one ``searchsorted``, O(N log N); so do the O(N) schemes when N is too large for the
+stratum of a point to be resolved in the floating-point type (N >= eps^-1 / 4, about 2 * 10^6 in
+float32). A point that rounding puts on a particle of zero weight (a flat stretch of the
+cumulative weights, or past its end) is moved to the next particle of positive weight:
+zero-weight particles are never drawn.
 
 Padded particle axis (``updates.base``): with ``num_active = k`` (an int or a traced int scalar)
 only k draws are made, from the particles of positive weight (padding has log-weight -inf, so
@@ -44,7 +50,9 @@ def _normalised_weights(log_weights: Array) -> Array:
 
 def _cdf(weights: Array) -> Array:
     cdf = jnp.cumsum(weights)
-    return cdf / cdf[-1]  # exact 1 at the end despite rounding
+    # Exact 1 at the end despite rounding; and non-decreasing: XLA's parallel cumulative sum can
+    # round a flat stretch (zero weights) a ulp down, where an inversion would be ill-defined.
+    return jax.lax.cummax(cdf / cdf[-1])
 
 
 def _invert_cdf(cdf: Array, points: Array) -> Array:
@@ -53,15 +61,45 @@ def _invert_cdf(cdf: Array, points: Array) -> Array:
     return jnp.clip(indices, 0, cdf.shape[0] - 1)
 
 
-def _draw(weights: Array, points: Array) -> Array:
+def _invert_cdf_by_strata(cdf: Array, points: Array, num_active) -> Array:
+    """``_invert_cdf(cdf, points)`` in O(N) for points with one tooth per stratum: slot j < k
+    holds a point of [j/k, (j+1)/k) (k = ``num_active``, N if None) and slot j >= k repeats slot
+    j mod k. Needs the stratum of a point to be resolved in floating point (see the module
+    docstring): ``_draw`` only calls it then."""
+    num = cdf.shape[0]
+    count = num if num_active is None else num_active
+    # q_i = #{j < k : p_j < c_i}. floor(k c_i) is the stratum of c_i up to one of rounding; the
+    # points of the three strata around it are compared, those further are below / above.
+    stratum = jnp.floor(count * cdf).astype(jnp.int32)
+
+    def below(j):  # [p_j < c_i]; a slot before the first is below everything, after the last above
+        inside = (j >= 0) & (j < count)
+        return jnp.where(inside, points[jnp.clip(j, 0, num - 1)] < cdf, j < 0)
+
+    below_count = stratum - 1 + below(stratum - 1) + below(stratum) + below(stratum + 1)
+    below_count = jnp.clip(below_count, 0, count)
+    # Ancestor of slot j = #{i : c_i <= p_j} = #{i : q_i <= j}: a running count of the q_i.
+    histogram = jnp.zeros(num + 1, jnp.int32).at[below_count].add(1)
+    indices = jnp.clip(jnp.cumsum(histogram)[:num], 0, num - 1)
+    return indices if num_active is None else indices[_strata(num, num_active)]
+
+
+def _draw(weights: Array, points: Array, stratified_points: bool = False, num_active=None) -> Array:
     """Inverse-CDF ancestors of ``points`` in [0, 1), never a particle of zero weight.
+
+    ``stratified_points``: the points have one tooth per stratum (``_invert_cdf_by_strata``),
+    inverted in O(N) when the dtype resolves N strata.
 
     Rounding in the cumulative sum can leave a point on a zero-weight particle (inside a flat
     stretch, or past the last positive weight, where padding sits): such an index moves to the
     next particle of positive weight, or to the last one. Positive-weight indices are unchanged.
     """
-    indices = _invert_cdf(_cdf(weights), points)
     num = weights.shape[0]
+    cdf = _cdf(weights)
+    if stratified_points and num * 4 * jnp.finfo(weights.dtype).eps < 1:
+        indices = _invert_cdf_by_strata(cdf, points, num_active)
+    else:
+        indices = _invert_cdf(cdf, points)
     positions = jnp.arange(num)
     positive = weights > 0
     following = jax.lax.cummin(jnp.where(positive, positions, num), reverse=True)
@@ -104,7 +142,7 @@ def stratified(key: Array, log_weights: Array, num_active=None) -> Array:
         strata = _strata(num, num_active)
         shifted = strata.astype(dtype) + offsets[strata]
         points = count_dependent(lambda count: shifted / count, num_active, num)
-    return _draw(_normalised_weights(log_weights), points)
+    return _draw(_normalised_weights(log_weights), points, True, num_active)
 
 
 def systematic(key: Array, log_weights: Array, num_active=None) -> Array:
@@ -115,7 +153,7 @@ def systematic(key: Array, log_weights: Array, num_active=None) -> Array:
     else:
         shifted = _strata(num, num_active).astype(dtype) + offset
         points = count_dependent(lambda count: shifted / count, num_active, num)
-    return _draw(_normalised_weights(log_weights), points)
+    return _draw(_normalised_weights(log_weights), points, True, num_active)
 
 
 def residual(key: Array, log_weights: Array, num_active=None) -> Array:
