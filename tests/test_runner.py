@@ -15,8 +15,11 @@ import ot_filter as otf
 from ot_filter.progress import progress_listener
 from ot_filter.runner import EXPERIMENTS, RunError, resolve_options
 
-# A small sweep: Lorenz-96 (n = 8), 2 methods x 4 blocks of one simulation = 8 cells of ~1 s.
-SWEEP = ["run", "lorenz96", "--dim", "8", "--particles", "10", "--steps", "20", "--simulations", "4",
+# A small sweep: Lorenz-96 (n = 8), 2 methods x 4 blocks of one simulation = 8 cells; the blocks
+# of a method share one compiled program, so a cell is its 10,000 steps (~0.3 s): long enough to
+# be interrupted in the middle of the sweep.
+STEPS = 10_000
+SWEEP = ["run", "lorenz96", "--dim", "8", "--particles", "10", "--steps", str(STEPS), "--simulations", "4",
          "--block", "1", "--methods", "enkf,sir", "--no-progress"]
 
 
@@ -73,7 +76,7 @@ def test_interrupted_sweep_resumes_and_reproduces_the_uninterrupted_metrics(tmp_
     assert timings["total_compile_s"] > 0 and timings["total_run_s"] > 0
     assert os.path.getsize(os.path.join(whole, "lorenz96_rmse.png")) > 10_000
     with np.load(os.path.join(whole, "arrays.npz")) as arrays:
-        assert arrays["method-enkf_dim-8_particles-10/rmse_mean"].shape == (20,)
+        assert arrays["method-enkf_dim-8_particles-10/rmse_mean"].shape == (STEPS,)
     metrics = json.load(open(os.path.join(whole, "metrics.json")))
     for row in metrics["results"]:  # one row per method, the blocks' simulations joined in order
         values = row["per_simulation"]["rmse_a"]["values"]
