@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import os
 import time
+from functools import partial
 from typing import Callable, Sequence
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ot_filter.model import simulate
 from ot_filter.updates import enkf, ot, sir
 
 METHODS = ("enkf", "sir", "ot")
@@ -24,6 +26,17 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
     if unknown or not methods:
         raise ValueError(f"methods must be a non-empty subset of {list(builders)}, got {list(methods)}")
     return {name: builders[name]() for name in methods}
+
+
+@partial(jax.jit, static_argnums=(2, 3))
+def simulate_truths(key, model, num_steps: int, num_simulations: int):
+    """``(states[S, T, n], observations[S, T, m])``: independent trajectories of the model.
+
+    Jitted at module level: with the same model object (functions are static cache keys; the
+    experiments keep one per setting) a sweep's cells reuse one compiled program instead of
+    retracing an eager vmap for every cell (0.6 s a cell for a small Lorenz-96 sweep).
+    """
+    return jax.vmap(lambda k: simulate(k, model, num_steps))(jax.random.split(key, num_simulations))
 
 
 def stats(values) -> dict:

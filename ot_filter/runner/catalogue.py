@@ -295,26 +295,15 @@ def _lorenz96_model(dim: int):
     return otf.models.lorenz96(dim=dim)
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3))
-def _simulate_truths(model, key, num_simulations: int, num_steps: int):
-    from ot_filter import simulate
-
-    return jax.vmap(lambda k: simulate(k, model, num_steps))(jax.random.split(key, num_simulations))
-
-
-def _truths(model, key, num_simulations: int, num_steps: int):
-    """(states, observations) as NumPy arrays: ``num_simulations`` twin truths, one jitted program
-    per model and sizes (an eager vmap retraced and recompiled it for every cell: 0.6 s a cell)."""
-    return tuple(np.asarray(a) for a in _simulate_truths(model, key, num_simulations, num_steps))
-
-
 def _lorenz96_cell(options, cell, progress):
     import ot_filter as otf
+    from ot_filter.experiments._common import simulate_truths
     from ot_filter import metrics
 
     model = _lorenz96_model(cell["dim"])
     truth_key, filter_key = jax.random.split(cell_key(options["seed"], cell["dim"], cell["block"]))
-    states, observations = _truths(model, truth_key, cell["simulations"], options["steps"])
+    states, observations = (np.asarray(a) for a in simulate_truths(
+        truth_key, model, options["steps"], cell["simulations"]))
     update = lorenz96_update(cell["method"])
 
     def one(k, y):
