@@ -11,7 +11,6 @@ Errors in names, option values or the output directory are one line on stderr an
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import signal

@@ -211,13 +211,13 @@ def _filter_body(
 ):
     """The filter's trace; ``place`` lays a particle array ``[N, ...]`` out on the devices."""
     init_key, state_key, steps_key = jax.random.split(key, 3)
-    model = with_observation_noise_factors(model)  # R factored once, not at every step
     if initial_particles is None:
         particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
     else:
         particles = jnp.asarray(initial_particles)
     particles = place(particles)
     observations = observations.astype(particles.dtype)
+    model = with_observation_noise_factors(model, particles.dtype)  # R factored once, not per step
     state = update.init(state_key, particles, model)
     if num_active is not None:
         # A traced count out of range cannot raise: it is clipped for the run, and its mean and

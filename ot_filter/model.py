@@ -109,11 +109,14 @@ def _unflatten(static, children) -> StateSpaceModel:
 jax.tree_util.register_pytree_node(StateSpaceModel, _flatten, _unflatten)
 
 
-def with_observation_noise_factors(model: StateSpaceModel) -> StateSpaceModel:
-    """``model`` with ``observation_noise_factors = (L, L^{-1})`` of its R (unchanged without R).
+def with_observation_noise_factors(model: StateSpaceModel, dtype=None) -> StateSpaceModel:
+    """``model`` with ``observation_noise_factors = (L, L^{-1})`` of its R (unchanged without R),
+    computed in R's dtype promoted with ``dtype`` (the particles'): a float32 R in a float64
+    filter is factored in float64, as the EnKF did before the factors were cached.
 
     Called by ``run_filter`` outside its scan. The factors must stay those of the model's R, so
-    this is done per run, never stored on a model that a user may ``_replace`` R in: inside a
+    this is done per run, never stored on a model that a user may ``_replace`` R in (a model
+    returned by this function and then given a new R would keep the old factors): inside a
     ``lax.cond`` branch (the update of a step that has an observation) XLA cannot hoist R's
     loop-invariant factorisation out of the loop, and on Lorenz-96 (m = 40) refactoring R at
     every step was a third of a square-root EnKF cycle.
@@ -121,6 +124,8 @@ def with_observation_noise_factors(model: StateSpaceModel) -> StateSpaceModel:
     if model.observation_noise_cov is None:
         return model
     noise_cov = jnp.asarray(model.observation_noise_cov)
+    if dtype is not None:
+        noise_cov = noise_cov.astype(jnp.promote_types(noise_cov.dtype, dtype))
     chol = jnp.linalg.cholesky(noise_cov)
     inverse = jax.scipy.linalg.solve_triangular(
         chol, jnp.eye(noise_cov.shape[0], dtype=chol.dtype), lower=True
@@ -131,7 +136,7 @@ def with_observation_noise_factors(model: StateSpaceModel) -> StateSpaceModel:
 def observation_noise_factors(model: StateSpaceModel, dtype) -> tuple[Array, Array]:
     """``(L, L^{-1})`` of the model's R in ``dtype``: the stored ones, else computed here."""
     if model.observation_noise_factors is None:
-        model = with_observation_noise_factors(model)
+        model = with_observation_noise_factors(model, dtype)
     chol, inverse = model.observation_noise_factors
     return jnp.asarray(chol, dtype), jnp.asarray(inverse, dtype)
 

@@ -4,7 +4,6 @@ import jax
 import numpy as np
 import pytest
 
-import ot_filter as otf
 
 
 def random_linear_gaussian(seed: int, state_dim: int = 3, observation_dim: int = 2):

@@ -1,7 +1,6 @@
 """The demo command: runs, writes its figure and numbers, reaches the published accuracy."""
 
 import json
-import os
 
 from ot_filter.cli import main
 

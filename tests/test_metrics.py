@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import ot_filter as otf
 from ot_filter import metrics
 
 

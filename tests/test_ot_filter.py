@@ -104,3 +104,17 @@ def test_an_ensemble_far_from_the_observation_is_caught_by_the_predictive_check(
                                 jnp.array([50.0, 1.0]), DYNAMIC)
     posterior, _, _ = frozen.apply(key, state, particles, jnp.array([50.0, 1.0]), DYNAMIC)
     np.testing.assert_allclose(posterior, expected, atol=1e-5)
+
+
+def test_cached_experiment_models_follow_the_float_mode():
+    # The experiments keep one model object per setting (compiled programs are reused); a
+    # float64 run must not inherit a float32 model built earlier in the same process.
+    from ot_filter.experiments.dynamic_example import dynamic_model
+    from ot_filter.experiments.lorenz63 import lorenz63_models
+
+    assert dynamic_model(2) is dynamic_model(2)
+    assert dynamic_model(2).observation_noise_cov.dtype == jnp.float32
+    with jax.enable_x64(True):
+        assert dynamic_model(2).observation_noise_cov.dtype == jnp.float64
+        assert lorenz63_models()[1].observation_noise_cov.dtype == jnp.float64
+    assert lorenz63_models()[1].observation_noise_cov.dtype == jnp.float32

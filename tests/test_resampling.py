@@ -103,3 +103,16 @@ def test_linear_time_inversion_gives_the_binary_search_indices(num, num_active):
         expected = _invert_cdf(cdf, points)
         got = _invert_cdf_by_strata(cdf, points, num_active)
         np.testing.assert_array_equal(got, expected)
+
+
+def test_linear_time_inversion_of_nan_weights_matches_the_binary_search():
+    # All log-weights -inf: NaN normalised weights. Both inversions must give the same indices
+    # (the binary search puts every point before the NaNs: index 0), padded or not.
+    from ot_filter.updates.resampling import _cdf, _invert_cdf, _invert_cdf_by_strata, _strata
+
+    weights = jnp.full(5, jnp.nan)
+    for num_active in (None, 3):
+        count = 5 if num_active is None else num_active
+        points = (_strata(5, num_active) + 0.5) / count
+        np.testing.assert_array_equal(_invert_cdf_by_strata(_cdf(weights), points, num_active),
+                                      _invert_cdf(_cdf(weights), points))

@@ -279,3 +279,12 @@ def test_enkf_with_precomputed_noise_factors_is_the_same_update(x64, perturbed):
     direct, _, _ = update.apply(jax.random.key(1), state, particles, y, model)
     cached, _, _ = update.apply(jax.random.key(1), state, particles, y, prepared)
     np.testing.assert_allclose(cached, direct, atol=1e-12)
+
+
+def test_float32_noise_covariance_is_factored_in_the_filter_precision(x64):
+    model, _, _, (H, R) = one_step_problem()
+    model = model._replace(observation_noise_cov=jnp.asarray(R, jnp.float32))
+    chol, inverse = otf.model.with_observation_noise_factors(model, jnp.float64).observation_noise_factors
+    assert chol.dtype == inverse.dtype == jnp.float64
+    R32 = np.asarray(np.float32(R), np.float64)
+    np.testing.assert_allclose(chol @ chol.T, R32, atol=1e-13)

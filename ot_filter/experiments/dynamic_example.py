@@ -70,11 +70,15 @@ SIR_REFERENCE_SUBSAMPLE = 2000
 MMD_BATCH = 8
 
 
-@lru_cache(maxsize=None)
 def dynamic_model(dim: int):
-    """The example's model in dimension ``dim``, one object per dimension: its functions are
-    static parts of the compiled programs' cache keys, so repeated runs (a sweep's cells) reuse
-    the truth simulation and filters compiled for it."""
+    """The example's model in dimension ``dim``, one object per dimension and float mode: its
+    functions are static parts of the compiled programs' cache keys, so repeated runs (a sweep's
+    cells) reuse the truth simulation and filters compiled for it."""
+    return _dynamic_model(dim, jax.config.jax_enable_x64)
+
+
+@lru_cache(maxsize=None)
+def _dynamic_model(dim: int, x64: bool):  # x64: the model's arrays take the mode's dtype
     return squared_observation(dim=dim)
 
 

@@ -52,9 +52,14 @@ _SETTING = dict(dt=TIME_STEP, integrator="euler", steps_per_observation=1, obser
                 observation_noise_std=10.0**0.5, initial_std=10.0)
 
 
-@lru_cache(maxsize=None)  # one pair of model objects: compiled programs are reused across runs
 def lorenz63_models():
-    """``(truth_model, filter_model)`` of the chapter's setting (see the module docstring)."""
+    """``(truth_model, filter_model)`` of the chapter's setting (see the module docstring); the
+    same objects for every call in a float mode, so compiled programs are reused across runs."""
+    return _lorenz63_models(jax.config.jax_enable_x64)
+
+
+@lru_cache(maxsize=None)
+def _lorenz63_models(x64: bool):  # x64: the models' arrays take the mode's dtype
     truth = lorenz63(process_noise_std=0.0, initial_mean=(25.0, 25.0, 25.0), **_SETTING)
     filtering = lorenz63(process_noise_std=0.1**0.5, initial_mean=(0.0, 0.0, 0.0), **_SETTING)
     return truth, filtering

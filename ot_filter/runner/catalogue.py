@@ -286,10 +286,15 @@ def lorenz96_update(method: str):
     return otf.ot(num_iterations=(1024, 64))
 
 
-@functools.lru_cache(maxsize=None)
 def _lorenz96_model(dim: int):
-    """One model object per dimension: its functions are static parts of the compiled programs'
-    cache keys, so the cells of a sweep reuse the truth simulation and filter compiled once."""
+    """One model object per dimension and float mode: its functions are static parts of the
+    compiled programs' cache keys, so the cells of a sweep reuse the truth simulation and filter
+    compiled once."""
+    return _cached_lorenz96_model(dim, jax.config.jax_enable_x64)
+
+
+@functools.lru_cache(maxsize=None)
+def _cached_lorenz96_model(dim: int, x64: bool):  # x64: the model's arrays take the mode's dtype
     import ot_filter as otf
 
     return otf.models.lorenz96(dim=dim)

@@ -78,6 +78,8 @@ def _invert_cdf_by_strata(cdf: Array, points: Array, num_active) -> Array:
 
     below_count = stratum - 1 + below(stratum - 1) + below(stratum) + below(stratum + 1)
     below_count = jnp.clip(below_count, 0, count)
+    # NaN weights (all -inf log-weights): a NaN sorts last in the binary search; same indices.
+    below_count = jnp.where(jnp.isnan(cdf), count, below_count)
     # Ancestor of slot j = #{i : c_i <= p_j} = #{i : q_i <= j}: a running count of the q_i.
     histogram = jnp.zeros(num + 1, jnp.int32).at[below_count].add(1)
     indices = jnp.clip(jnp.cumsum(histogram)[:num], 0, num - 1)
