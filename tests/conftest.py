@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 
-
 def random_linear_gaussian(seed: int, state_dim: int = 3, observation_dim: int = 2):
     """A stable random linear-Gaussian model; matrices drawn with NumPy (float64)."""
     rng = np.random.default_rng(seed)
