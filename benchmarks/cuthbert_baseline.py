@@ -6,7 +6,10 @@ Run with an interpreter that has cuthbert installed (not ot_filter's), e.g.
 
 This script imports neither ot_filter nor DAPPER: it only calls cuthbert's public API
 (``cuthbert.smc.particle_filter.build_filter``, ``cuthbert.ensemble_kalman.
-ensemble_kalman_filter.build_filter``, ``cuthbert.filter``, ``cuthbertlib.resampling``).
+ensemble_kalman_filter.build_filter``, ``cuthbert.filter``, ``cuthbertlib.resampling``). The
+ot_filter-side numbers (N, inflation, jitter, ESS threshold, burn-in) default to those of
+``ot_filter/experiments/twin_configurations.py``, which it loads by file path (that file imports
+neither ot_filter nor JAX at import time).
 
 Data (``--data``): a .npz with ``observations [S, T, 3]`` and ``states [S, T, 3]``: S truths of
 Lorenz-63 as ``ot_filter.simulate(key, ot_filter.models.lorenz63(), T)`` draws them, i.e.
@@ -65,12 +68,14 @@ Output: one JSON object on stdout ``{config: {"seconds": [...], "compile_s": ...
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import jax
 
@@ -84,6 +89,23 @@ import cuthbert  # noqa: E402
 from cuthbert.ensemble_kalman import ensemble_kalman_filter  # noqa: E402
 from cuthbert.smc import particle_filter  # noqa: E402
 from cuthbertlib.resampling import ess_decorator, systematic  # noqa: E402
+
+
+def load_twin_configurations():
+    """``ot_filter/experiments/twin_configurations.py``, loaded by file path (not as part of
+    the ot_filter package, which this interpreter need not have)."""
+    path = Path(__file__).resolve().parents[1] / "ot_filter" / "experiments" / "twin_configurations.py"
+    spec = importlib.util.spec_from_file_location("_twin_configurations", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+_TWIN = load_twin_configurations()
+PARTICLE_FILTER = _TWIN.TWIN_CONFIGURATIONS["L63/PartFilt-N800"]  # N 800, jitter 0.9, ESS 0.2
+ENKF = _TWIN.TWIN_CONFIGURATIONS["L63/EnKF-PertObs-N10"]  # N 10, inflation 1.02
+FIRST_AVERAGED = _TWIN.TWIN_EXPERIMENTS["lorenz63"].burn_in  # 64: DAPPER's BurnIn 16 at dt_obs 0.25
 
 # ---- Lorenz-63, ot_filter.models.lorenz63() defaults (Sakov et al. 2012, as in DAPPER) ----
 SIGMA, RHO, BETA = 10.0, 28.0, 8.0 / 3.0
@@ -142,7 +164,7 @@ def observation_log_density(y, x):
 
 def weighted_covariance(particles, log_weights):
     """Unbiased weighted covariance; equally weighted when one particle holds all the mass
-    (ot_filter._linalg.weighted_covariance without padding)."""
+    (ot_filter.lib.ensemble.weighted_covariance without padding)."""
     weights = jax.nn.softmax(log_weights)
     eps = jnp.finfo(particles.dtype).eps
     collapsed = 1.0 - jnp.max(weights) < 100 * eps
@@ -263,20 +285,22 @@ def main() -> None:
     parser.add_argument("--data", required=True, help=".npz with observations/states [S, T, 3]")
     parser.add_argument("--configs", default="PartFilt,EnKF-PertObs",
                         help="comma-separated: PartFilt, EnKF-PertObs, EnKF-Det")
-    parser.add_argument("--particles", type=int, default=800, help="particle filter N")
-    parser.add_argument("--ensemble", type=int, default=10, help="EnKF N")
-    parser.add_argument("--jitter", type=float, default=0.9,
+    parser.add_argument("--particles", type=int, default=PARTICLE_FILTER.num_particles,
+                        help="particle filter N")
+    parser.add_argument("--ensemble", type=int, default=ENKF.num_particles, help="EnKF N")
+    parser.add_argument("--jitter", type=float, default=PARTICLE_FILTER.settings["jitter"],
                         help="regularisation after resampling (ot_filter sir jitter, DAPPER reg)")
-    parser.add_argument("--ess-threshold", type=float, default=0.2,
+    parser.add_argument("--ess-threshold", type=float,
+                        default=PARTICLE_FILTER.settings["ess_threshold"],
                         help="resample when ESS < threshold N (DAPPER NER); >= 1: every step")
     parser.add_argument("--process-noise", type=float, default=0.0,
                         help="filter-model process noise std per RK4 step (default 0)")
-    parser.add_argument("--inflation", type=float, default=1.02,
+    parser.add_argument("--inflation", type=float, default=ENKF.settings["inflation"],
                         help="EnKF multiplicative inflation (ot_filter/DAPPER convention)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seeds", type=int, default=0, help="use the first S seeds (0: all)")
     parser.add_argument("--filter-seed", type=int, default=1)
-    parser.add_argument("--first-averaged", type=int, default=64)
+    parser.add_argument("--first-averaged", type=int, default=FIRST_AVERAGED)
     parser.add_argument("--api", choices=("offline", "online"), default="offline")
     parser.add_argument("--x64", action="store_true", help="jax_enable_x64 (default float32)")
     args = parser.parse_args()

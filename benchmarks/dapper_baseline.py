@@ -8,6 +8,9 @@ Run with an interpreter that has DAPPER 1.7.1 installed (not ot_filter's), e.g.
 This script only calls DAPPER's public API (``dapper.mods`` models, ``dapper.da_methods``).
 
 Configurations (DAPPER's own model files and suggested tunings, same names as lorenz_twin.py):
+those of ``ot_filter/experiments/twin_configurations.py`` with a published rmse.a, built from
+their ``dapper_method`` call strings. DAPPER's interpreter need not have ot_filter (nor JAX):
+that file is loaded by its path and imports neither at import time.
 
     L63/EnKF-Sqrt-N10     Lorenz63.sakov2012  EnKF('Sqrt', N=10, infl=1.02, rot=True)   0.60
     L63/PartFilt-N800     Lorenz63.sakov2012  PartFilt(N=800, reg=0.9, NER=0.2)         0.28
@@ -35,11 +38,14 @@ with one list entry per seed; progress goes to stderr.
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
+import importlib.util
 import json
 import os
 import sys
 import time
+from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -63,12 +69,35 @@ rc.store_u = False
 FILTER_SEED_OFFSET = 100_000  # filter seed = truth seed + offset: never reuses a truth seed
 
 MODELS = {"L63": HMM_L63, "L96": HMM_L96}
+MODEL_KEYS = {"lorenz63": "L63", "lorenz96": "L96"}
 
-CONFIGS = {
-    "L63/EnKF-Sqrt-N10": ("L63", lambda: da.EnKF("Sqrt", N=10, infl=1.02, rot=True)),
-    "L63/PartFilt-N800": ("L63", lambda: da.PartFilt(N=800, reg=0.9, NER=0.2)),
-    "L96/EnKF-PertObs-N40": ("L96", lambda: da.EnKF("PertObs", N=40, infl=1.06)),
-    "L96/EnKF-Sqrt-N24": ("L96", lambda: da.EnKF("Sqrt", N=24, infl=1.013, rot=True)),
+
+def load_twin_configurations():
+    """``ot_filter/experiments/twin_configurations.py``, loaded by file path (not as part of
+    the ot_filter package, which this interpreter need not have)."""
+    path = Path(__file__).resolve().parents[1] / "ot_filter" / "experiments" / "twin_configurations.py"
+    spec = importlib.util.spec_from_file_location("_twin_configurations", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def dapper_method(call: str):
+    """DAPPER's method from its call string, e.g. ``"EnKF('Sqrt', N=10, infl=1.02, rot=True)"``
+    (a ``dapper.da_methods`` name with literal arguments; parsed, not evaluated)."""
+    node = ast.parse(call, mode="eval").body
+    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)):
+        raise ValueError(f"not a DAPPER method call: {call!r}")
+    args = [ast.literal_eval(arg) for arg in node.args]
+    kwargs = {keyword.arg: ast.literal_eval(keyword.value) for keyword in node.keywords}
+    return getattr(da, node.func.id)(*args, **kwargs)
+
+
+CONFIGS = {  # name -> (model, method builder): the configurations DAPPER publishes an rmse.a for
+    c.name: (MODEL_KEYS[c.model_name], lambda call=c.dapper_method: dapper_method(call))
+    for c in load_twin_configurations().TWIN_CONFIGURATIONS.values()
+    if c.expected_rmse is not None
 }
 
 

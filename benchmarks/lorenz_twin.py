@@ -6,7 +6,7 @@ Run (from the repository root):
     PYTHONPATH=. python benchmarks/lorenz_twin.py --quick      # 2 seeds, 2 repeats: a fast check
 
 Configurations (DAPPER's model files and their suggested tunings; last column the rmse.a they
-publish):
+publish; all defined in ``ot_filter/experiments/twin_configurations.py``):
 
     L63/EnKF-Sqrt-N10     lorenz63()  enkf(1.02, perturbed=False, rotate=True), N=10     0.60
     L63/PartFilt-N800     lorenz63()  sir('systematic', ess_threshold=0.2, jitter=0.9),
@@ -70,6 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import ot_filter
+from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS, TWIN_EXPERIMENTS
 
 BENCHMARKS = Path(__file__).resolve().parent
 RESULTS = BENCHMARKS / "results"
@@ -77,25 +78,10 @@ TRUTH_SEED = 0
 FILTER_SEED = 1
 
 
-class Experiment(NamedTuple):
-    """A twin experiment: model, observation count and DAPPER's averaging window."""
-
-    make_model: Callable[[], ot_filter.StateSpaceModel]
-    num_observations: int
-    dt_obs: float
-    burn_in: float  # DAPPER's BurnIn: analyses at t <= burn_in are not averaged
-    analyses_averaged: int  # what DAPPER averages over (checked against the window)
-
-    @property
-    def first_averaged(self) -> int:
-        """Index of the first analysis with t = dt_obs (k + 1) > burn_in (integer arithmetic)."""
-        return int(round(self.burn_in / self.dt_obs))
-
-
-EXPERIMENTS = {
-    "L63": Experiment(ot_filter.models.lorenz63, 1001, 0.25, 16.0, 937),
-    "L96": Experiment(ot_filter.models.lorenz96, 1001, 0.05, 20.0, 601),
-}
+# A twin experiment: model, observation count (num_analyses) and DAPPER's averaging window
+# (burn_in: index of the first averaged analysis; analyses_averaged: DAPPER's count, checked).
+EXPERIMENTS = {"L63": TWIN_EXPERIMENTS["lorenz63"], "L96": TWIN_EXPERIMENTS["lorenz96"]}
+EXPERIMENT_KEYS = {experiment.model_name: key for key, experiment in EXPERIMENTS.items()}
 
 
 class Config(NamedTuple):
@@ -107,17 +93,10 @@ class Config(NamedTuple):
     published_rmse: float | None  # rmse.a in DAPPER's model file
 
 
-CONFIGS = (
-    Config("L63/EnKF-Sqrt-N10", "L63", "EnKF Sqrt infl 1.02 rot", 10,
-           lambda: ot_filter.enkf(inflation=1.02, perturbed=False, rotate=True), 0.60),
-    Config("L63/EnKF-PertObs-N10", "L63", "EnKF PertObs infl 1.02", 10,
-           lambda: ot_filter.enkf(inflation=1.02), None),  # no published value; cuthbert has this EnKF
-    Config("L63/PartFilt-N800", "L63", "PartFilt reg 0.9 NER 0.2", 800,
-           lambda: ot_filter.sir(resampling="systematic", ess_threshold=0.2, jitter=0.9), 0.28),
-    Config("L96/EnKF-PertObs-N40", "L96", "EnKF PertObs infl 1.06", 40,
-           lambda: ot_filter.enkf(inflation=1.06), 0.22),
-    Config("L96/EnKF-Sqrt-N24", "L96", "EnKF Sqrt infl 1.013 rot", 24,
-           lambda: ot_filter.enkf(inflation=1.013, perturbed=False, rotate=True), 0.18),
+CONFIGS = tuple(
+    Config(c.name, EXPERIMENT_KEYS[c.model_name], c.label, c.num_particles, c.build_update,
+           c.expected_rmse)
+    for c in TWIN_CONFIGURATIONS.values()
 )
 
 
@@ -133,7 +112,7 @@ def simulate_truths(num_seeds: int) -> dict[str, dict[str, np.ndarray]]:
         model = experiment.make_model()
         keys = jax.random.split(jax.random.key(TRUTH_SEED), num_seeds)
         states, observations = jax.jit(
-            jax.vmap(lambda key: ot_filter.simulate(key, model, experiment.num_observations))
+            jax.vmap(lambda key: ot_filter.simulate(key, model, experiment.num_analyses))
         )(keys)
         truths[name] = {"states": np.asarray(states), "observations": np.asarray(observations)}
     return truths
@@ -144,7 +123,7 @@ def make_twin(config: Config) -> Callable:
     experiment = EXPERIMENTS[config.experiment]
     model = experiment.make_model()
     update = config.make_update()
-    first = experiment.first_averaged
+    first = experiment.burn_in
 
     def twin(key, observations, states):
         result = ot_filter.run_filter(
@@ -427,7 +406,7 @@ def main() -> None:
     dapper_seeds = args.dapper_seeds or (1 if args.quick else 8)
 
     for experiment in EXPERIMENTS.values():  # the averaging window must match DAPPER's
-        averaged = experiment.num_observations - experiment.first_averaged
+        averaged = experiment.num_analyses - experiment.burn_in
         assert averaged == experiment.analyses_averaged, (averaged, experiment)
 
     if args.child is not None:

@@ -18,10 +18,11 @@ import sys
 import threading
 import time
 
+from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS, TWIN_EXPERIMENTS
 from ot_filter.runner.run import RunInterrupted
 from ot_filter.runner.store import RunError, write_json_atomic
 
-BURN_IN_ANALYSES = 64  # DAPPER averages analyses after t = 16 (observations every 0.25)
+BURN_IN_ANALYSES = TWIN_EXPERIMENTS["lorenz63"].burn_in  # DAPPER averages after t = 16: 64 analyses
 
 
 class _Parser(argparse.ArgumentParser):
@@ -91,14 +92,16 @@ def run_demo(out: str, seed: int = 0) -> dict:
         os.makedirs(out, exist_ok=True)
     except OSError as error:
         raise RunError(f"cannot write to output directory {out!r}: {error.strerror or error}") from None
-    model = otf.models.lorenz63()
-    states, observations = otf.simulate(jax.random.key(seed), model, 1001)
+    experiment = TWIN_EXPERIMENTS["lorenz63"]
+    model = experiment.make_model()
+    states, observations = otf.simulate(jax.random.key(seed), model, experiment.num_analyses)
     methods = {
-        "EnKF (square root, N=10)": (otf.enkf(inflation=1.02, perturbed=False, rotate=True), 10),
-        "SIR (regularised, N=800)": (otf.sir(ess_threshold=0.2, jitter=0.9), 800),
+        "EnKF (square root, N=10)": TWIN_CONFIGURATIONS["L63/EnKF-Sqrt-N10"],
+        "SIR (regularised, N=800)": TWIN_CONFIGURATIONS["L63/PartFilt-N800"],
     }
     results, metrics = {}, {}
-    for name, (update, num_particles) in methods.items():
+    for name, configuration in methods.items():
+        update, num_particles = configuration.build_update(), configuration.num_particles
         filter_key = jax.random.key(seed + 1)
         start = time.perf_counter()
         result = otf.run_filter(filter_key, model, update, observations, num_particles, save_every=0)

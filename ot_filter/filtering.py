@@ -34,8 +34,15 @@ import numpy as np
 
 from ot_filter.metrics import spread as ensemble_spread
 from ot_filter.model import StateSpaceModel, model_dimensions, with_observation_noise_factors
-from ot_filter.updates.base import BayesUpdate, uniform_log_weights
-from ot_filter.progress import maybe_report
+from ot_filter.particles import (
+    ParticleState,
+    check_filter_arguments,
+    check_num_active,
+    initial_particle_state,
+    saved_step_indices,
+    scan_with_snapshots,
+)
+from ot_filter.updates.base import BayesUpdate
 
 Array = jax.Array
 
@@ -88,12 +95,14 @@ def run_filter(
     Args:
       key: PRNG key.
       model: the state-space model (its simulator propagates the particles).
-      update: a ``BayesUpdate`` (``ot_filter.sir(...)``, ``ot_filter.enkf(...)``, ``ot_filter.ot(...)``).
+      update: a ``BayesUpdate`` (``ot_filter.sir(...)``, ``ot_filter.enkf(...)``, ``ot_filter.ot(...)``);
+        a traced argument: its numeric settings may be traced (``jax.vmap`` over
+        ``enkf(inflation=a)`` runs in one program; a new value does not recompile).
       observations: ``[T, m]`` observations y_1..y_T (rows with NaN are treated as missing).
       num_particles: N >= 2 (static).
       save_every: keep the particles of every k-th step (steps k-1, 2k-1, ...); 1 keeps all,
         0 keeps none, as does any k > T (static).
-      initial_particles: optional ``[N, n]`` initial ensemble instead of N draws from pi_0
+      initial_particles: optional finite ``[N, n]`` initial ensemble instead of N draws from pi_0
         (e.g. a filter started from a different prior than the truth).
       num_active: optional number k of active particles, 2 <= k <= N, an int or a traced int
         scalar (it may be vmapped over); the other N - k are padding (see the module docstring).
@@ -119,76 +128,39 @@ def run_filter(
             f"update must be a BayesUpdate or another NamedTuple with init and apply (e.g. "
             f"ot_filter.sir()), got {type(update).__name__}"
         )
-    if isinstance(num_particles, bool) or not isinstance(num_particles, (int, np.integer)):
-        raise TypeError(f"num_particles must be an int, got {type(num_particles).__name__}")
-    if num_particles < 2:
-        raise ValueError(f"num_particles must be >= 2, got {num_particles}")
-    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 0:
-        raise ValueError(f"save_every must be an int >= 0, got {save_every!r}")
     state_dim, observation_dim = model_dimensions(model)
     if jnp.ndim(observations) != 2 or jnp.shape(observations)[1] != observation_dim:
         raise ValueError(
             f"observations must have shape [T, {observation_dim}] for this model, "
             f"got {jnp.shape(observations)}"
         )
-    if jnp.shape(observations)[0] < 1:
-        raise ValueError("observations must hold at least one time step (T >= 1)")
-    if initial_particles is not None:
-        expected = (int(num_particles), state_dim)
-        if jnp.shape(initial_particles) != expected:
-            raise ValueError(
-                f"initial_particles must have shape {expected}, got {jnp.shape(initial_particles)}"
-            )
-    if num_active is not None:
-        num_active = _check_num_active(num_active, int(num_particles))
     num_steps = jnp.shape(observations)[0]
-    if save_every > num_steps:
-        save_every = 0  # no step would be saved
-    progress = check_progress(progress)
+    if num_steps < 1:
+        raise ValueError("observations must hold at least one time step (T >= 1)")
+    num_particles, save_every, progress = check_filter_arguments(
+        num_particles, save_every, num_steps, state_dim, initial_particles, progress
+    )
+    if num_active is not None:
+        num_active = check_num_active(num_active, num_particles)
     if particle_sharding is not None:
         devices = particle_sharding.mesh.size
         if not isinstance(particle_sharding, jax.sharding.NamedSharding):
             raise TypeError("particle_sharding must be a NamedSharding, e.g. ot_filter.particle_sharding()")
-        if int(num_particles) % devices:
+        if num_particles % devices:
             raise ValueError(
                 f"num_particles = {num_particles} must be divisible by the {devices} devices of "
                 f"particle_sharding"
             )
     result = _run_filter(
-        key, model, update, jnp.asarray(observations), int(num_particles), int(save_every),
+        key, model, update, jnp.asarray(observations), num_particles, save_every,
         initial_particles, num_active, bool(update_first), progress, particle_sharding,
     )
-    saved_steps = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
-    return result._replace(saved_steps=saved_steps)
+    return result._replace(saved_steps=saved_step_indices(save_every, num_steps))
 
 
-def check_progress(progress) -> int:
-    if isinstance(progress, bool) or not isinstance(progress, (int, np.integer)) or progress < 0:
-        raise ValueError(f"progress must be an int >= 0 (report every k steps; 0: off), got {progress!r}")
-    return int(progress)
-
-
-def _check_num_active(num_active, num_particles: int) -> Array:
-    """An int32 scalar; concrete values must lie in [2, num_particles]."""
-    dtype = getattr(num_active, "dtype", None)
-    if isinstance(num_active, bool) or not (
-        isinstance(num_active, (int, np.integer))
-        or (dtype is not None and jnp.issubdtype(dtype, jnp.integer) and jnp.ndim(num_active) == 0)
-    ):
-        raise TypeError(
-            f"num_active must be an int or an int scalar array, got {num_active!r}"
-        )
-    if not isinstance(num_active, jax.core.Tracer):
-        value = int(num_active)
-        if not 2 <= value <= num_particles:
-            raise ValueError(
-                f"num_active must satisfy 2 <= num_active <= num_particles = {num_particles}, "
-                f"got {value}"
-            )
-    return jnp.asarray(num_active, jnp.int32)
-
-
-@partial(jax.jit, static_argnames=("update", "num_particles", "save_every", "update_first", "progress",
+# The update is a traced argument: built-in updates are pytrees whose leaves are their numbers
+# (lib.static.bind), so new values reuse the program and vmap over them works.
+@partial(jax.jit, static_argnames=("num_particles", "save_every", "update_first", "progress",
                                    "particle_sharding"))
 def _run_filter(
     key, model, update, observations, num_particles, save_every, initial_particles, num_active,
@@ -211,23 +183,25 @@ def _filter_body(
 ):
     """The filter's trace; ``place`` lays a particle array ``[N, ...]`` out on the devices."""
     init_key, state_key, steps_key = jax.random.split(key, 3)
-    if initial_particles is None:
-        particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
-    else:
-        particles = jnp.asarray(initial_particles)
-    particles = place(particles)
-    observations = observations.astype(particles.dtype)
-    model = with_observation_noise_factors(model, particles.dtype)  # R factored once, not per step
-    state = update.init(state_key, particles, model)
     if num_active is not None:
         # A traced count out of range cannot raise: it is clipped for the run, and its mean and
         # spread are NaN.
         valid = (num_active >= 2) & (num_active <= num_particles)
         num_active = jnp.clip(num_active, 2, num_particles)
-        state = state._replace(log_weights=uniform_log_weights(particles, num_active))
+    particle_state = initial_particle_state(
+        init_key, model.sample_initial, num_particles, initial_particles, num_active
+    )
+    particles = place(particle_state.particles)
+    observations = observations.astype(particles.dtype)
+    model = with_observation_noise_factors(model, particles.dtype)  # R factored once, not per step
+    state = update.init(state_key, particles, model)
+    check_update_state(state, num_particles)
+    if num_active is not None:
+        state = state._replace(log_weights=particle_state.log_weights)
 
     def step(carry, inputs):
-        particles, state = carry
+        particle_state, state = carry
+        particles = particle_state.particles
         step_key, observation = inputs
         propagate_key, update_key = jax.random.split(step_key)
 
@@ -254,15 +228,15 @@ def _filter_body(
         )
         if update_first:
             particles = propagate(particles)
-        particles = place(particles)
-        mean = jnp.exp(state.log_weights) @ particles
-        spread = ensemble_spread(particles, state.log_weights)
-        return (particles, state), (mean, spread, info, observed)
+        particle_state = ParticleState(place(particles), state.log_weights)
+        mean = jnp.exp(particle_state.log_weights) @ particle_state.particles
+        spread = ensemble_spread(particle_state.particles, particle_state.log_weights)
+        return (particle_state, state), (mean, spread, info, observed)
 
     step_keys = jax.random.split(steps_key, observations.shape[0])
     carry, outputs, saved = scan_with_snapshots(
-        step, (particles, state), (step_keys, observations), save_every,
-        lambda carry: (carry[0], carry[1].log_weights), progress,
+        step, (ParticleState(particles, state.log_weights), state), (step_keys, observations),
+        save_every, lambda carry: carry[0], progress,
     )
     saved_particles, saved_log_weights = saved if saved is not None else (None, None)
     mean, spread, info, observed = outputs
@@ -277,47 +251,16 @@ def _filter_body(
         particles=saved_particles,
         log_weights=saved_log_weights,
         saved_steps=None,  # filled in outside jit (a static NumPy array)
-        final_particles=carry[0],
+        final_particles=carry[0].particles,
         final_state=carry[1],
     )
 
 
-def scan_with_snapshots(step, carry, inputs, save_every: int, snapshot, progress: int = 0):
-    """``lax.scan(step, carry, inputs)`` that also returns ``snapshot(carry)`` after every
-    ``save_every``-th step (stacked; None when ``save_every`` is 0) without storing the others.
-
-    An outer scan over blocks of ``save_every`` steps saves the snapshot at each block's end; a
-    short remainder scan finishes the trajectory. ``progress`` > 0 reports every that many steps
-    to ``ot_filter.progress`` listeners (static). Returns ``(carry, outputs, snapshots)``.
-    """
-    if progress:
-        num_steps = jax.tree.leaves(inputs)[0].shape[0]
-        plain_step = step
-
-        def step(carry, indexed):  # noqa: F811 - the same step, reporting its index
-            index, step_inputs = indexed
-            carry, outputs = plain_step(carry, step_inputs)
-            maybe_report(index, num_steps, progress)
-            return carry, outputs
-
-        inputs = (jnp.arange(num_steps), inputs)
-    if save_every == 0:
-        carry, outputs = jax.lax.scan(step, carry, inputs)
-        return carry, outputs, None
-    num_steps = jax.tree.leaves(inputs)[0].shape[0]
-    num_blocks = num_steps // save_every
-    blocked = num_blocks * save_every
-
-    def block(carry, block_inputs):
-        carry, outputs = jax.lax.scan(step, carry, block_inputs)
-        return carry, (outputs, snapshot(carry))
-
-    def to_blocks(array):
-        return array[:blocked].reshape(num_blocks, save_every, *array.shape[1:])
-
-    carry, (outputs, snapshots) = jax.lax.scan(block, carry, jax.tree.map(to_blocks, inputs))
-    outputs = jax.tree.map(lambda a: a.reshape(blocked, *a.shape[2:]), outputs)
-    if blocked < num_steps:
-        carry, tail = jax.lax.scan(step, carry, jax.tree.map(lambda a: a[blocked:], inputs))
-        outputs = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
-    return carry, outputs, snapshots
+def check_update_state(state, num_particles: int) -> None:
+    """The update contract (``updates.base``): every state carries ``log_weights[N]``."""
+    log_weights = getattr(state, "log_weights", None)
+    if log_weights is None or not hasattr(state, "_replace") or jnp.shape(log_weights) != (num_particles,):
+        raise TypeError(
+            f"update.init must return a NamedTuple state with a log_weights field of shape "
+            f"({num_particles},) (the contract in ot_filter.updates.base), got {type(state).__name__}"
+        )

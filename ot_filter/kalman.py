@@ -16,7 +16,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import symmetrise
+from ot_filter.lib.linalg import symmetrise
 from ot_filter.model import StateSpaceModel
 from ot_filter.models.linear_gaussian import LinearGaussianParameters
 

@@ -26,7 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ot_filter._linalg import weighted_covariance
+from ot_filter.lib.ensemble import weighted_covariance
+from ot_filter.lib.validation import check_broadcastable
+from ot_filter.lib.weights import effective_sample_size
 
 Array = jax.Array
 
@@ -45,7 +47,9 @@ __all__ = [
 
 
 def mse(estimate: Array, truth: Array) -> Array:
-    """Mean over the last axis of the squared error: ``[..., n] -> [...]``."""
+    """Mean over the last axis of the squared error: ``[..., n] -> [...]`` (leading axes
+    broadcast, e.g. estimates of several simulations against one truth)."""
+    check_broadcastable("estimate", estimate, "truth", truth, same_last_axis=True)
     return jnp.mean((jnp.asarray(estimate) - jnp.asarray(truth)) ** 2, axis=-1)
 
 
@@ -56,10 +60,7 @@ def rmse(estimate: Array, truth: Array) -> Array:
 
 def ess(log_weights: Array) -> Array:
     """Effective sample size ``(sum w)^2 / sum w^2`` from log-weights ``[..., N]``."""
-    log_weights = jnp.asarray(log_weights)
-    return jnp.exp(
-        2 * jax.nn.logsumexp(log_weights, axis=-1) - jax.nn.logsumexp(2 * log_weights, axis=-1)
-    )
+    return effective_sample_size(log_weights)
 
 
 def spread(particles: Array, log_weights: Array | None = None) -> Array:

@@ -18,24 +18,23 @@ import numpy as np
 import pytest
 
 import ot_filter as otf
+from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS, TWIN_EXPERIMENTS
 
 NUM_TRUTHS = 8
-NUM_ANALYSES = 1001
-LORENZ63_BURN_IN = 64  # t > 16 with observations every 0.25
-LORENZ96_BURN_IN = 400  # t > 20 with observations every 0.05
+LORENZ63 = TWIN_EXPERIMENTS["lorenz63"]  # 1001 analyses, burn-in 64 (t > 16, observations every 0.25)
 
 
-def twins(model, num_truths=NUM_TRUTHS, seed=0):
+def twins(model, num_truths=NUM_TRUTHS, seed=0, num_analyses=LORENZ63.num_analyses):
     keys = jax.random.split(jax.random.key(seed), num_truths)
-    return jax.vmap(lambda k: otf.simulate(k, model, NUM_ANALYSES))(keys)
+    return jax.vmap(lambda k: otf.simulate(k, model, num_analyses))(keys)
 
 
 def mean_rmse(model, update, num_particles, burn_in, seed=0, data=None, average=np.mean):
     return float(average(rmse_per_truth(model, update, num_particles, burn_in, seed, data)))
 
 
-def rmse_per_truth(model, update, num_particles, burn_in, seed=0, data=None):
-    states, observations = twins(model, seed=seed) if data is None else data
+def rmse_per_truth(model, update, num_particles, burn_in, seed=0, data=None, num_analyses=LORENZ63.num_analyses):
+    states, observations = twins(model, seed=seed, num_analyses=num_analyses) if data is None else data
     filter_keys = jax.random.split(jax.random.key(seed + 1), states.shape[0])
     run = jax.jit(jax.vmap(
         lambda k, y: otf.run_filter(k, model, update, y, num_particles, save_every=0).mean
@@ -45,19 +44,17 @@ def rmse_per_truth(model, update, num_particles, burn_in, seed=0, data=None):
     return np.asarray(rmse, np.float64)
 
 
-CASES = {  # model, update, N, burn-in, published rmse.a, marginal (occasionally diverges)
-    "lorenz63-enkf-sqrt-N10": (otf.models.lorenz63, lambda: otf.enkf(1.02, perturbed=False, rotate=True), 10, LORENZ63_BURN_IN, 0.60, False),
-    "lorenz63-sir-N800": (otf.models.lorenz63, lambda: otf.sir(ess_threshold=0.2, jitter=0.9), 800, LORENZ63_BURN_IN, 0.28, False),
-    "lorenz96-enkf-perturbed-N40": (otf.models.lorenz96, lambda: otf.enkf(1.06), 40, LORENZ96_BURN_IN, 0.22, False),
-    "lorenz96-enkf-sqrt-N24": (otf.models.lorenz96, lambda: otf.enkf(1.013, perturbed=False, rotate=True), 24, LORENZ96_BURN_IN, 0.18, True),
-}
+CASES = {name: c for name, c in TWIN_CONFIGURATIONS.items() if c.expected_rmse is not None}
+MARGINAL = {"L96/EnKF-Sqrt-N24"}  # occasionally diverges (see above)
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_published_rmse_within_ten_percent(case):
-    build_model, build_update, num_particles, burn_in, published, marginal = CASES[case]
-    rmse = rmse_per_truth(build_model(), build_update(), num_particles, burn_in)
-    if marginal:
+    config = CASES[case]
+    experiment, published = config.experiment, config.expected_rmse
+    rmse = rmse_per_truth(experiment.make_model(), config.build_update(), config.num_particles,
+                          experiment.burn_in, num_analyses=experiment.num_analyses)
+    if case in MARGINAL:
         assert np.median(rmse) < 1.10 * published, (case, rmse, published)
         assert np.sum(rmse > 2 * published) <= 2, (case, rmse)
     else:
@@ -73,7 +70,7 @@ def per_run_rmse(model, update, data, seeds=(1, 2, 3)):
     values = []
     for seed in seeds:
         keys = jax.random.split(jax.random.key(seed), states.shape[0])
-        rmse = otf.metrics.rmse(run(keys, observations), states)[:, LORENZ63_BURN_IN:].mean(axis=1)
+        rmse = otf.metrics.rmse(run(keys, observations), states)[:, LORENZ63.burn_in:].mean(axis=1)
         values.append(np.asarray(rmse, np.float64))
     return np.concatenate(values)
 

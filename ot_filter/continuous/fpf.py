@@ -27,7 +27,7 @@ import numpy as np
 
 from ot_filter.continuous.gains.base import Gain
 from ot_filter.continuous.sde import SDEModel, check_time_step, diffusion_increment, sde_dimensions
-from ot_filter.filtering import check_progress, scan_with_snapshots
+from ot_filter.particles import check_progress, scan_with_snapshots
 
 Array = jax.Array
 

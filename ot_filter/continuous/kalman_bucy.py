@@ -25,7 +25,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import symmetrise
+from ot_filter.lib.linalg import symmetrise
 from ot_filter.continuous.models import LinearSDEParameters
 from ot_filter.continuous.sde import SDEModel, check_time_step
 

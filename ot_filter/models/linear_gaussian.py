@@ -13,7 +13,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import psd_sqrt
+from ot_filter.lib.linalg import psd_sqrt
 from ot_filter.model import StateSpaceModel, check_covariance
 
 Array = jax.Array

@@ -275,14 +275,16 @@ def _lorenz63_plot(options, groups, out):
 
 
 def lorenz96_update(method: str):
-    """Lorenz-96 updates: the square-root EnKF with inflation 1.02 (DAPPER tunes 1.013 for N = 24),
-    the regularised SIR of the Lorenz-63 benchmark, and the OT filter with the 1024 -> 64 schedule."""
+    """Lorenz-96 updates: DAPPER's square-root EnKF with inflation 1.02 (DAPPER tunes 1.013 for
+    N = 24), the regularised SIR of the Lorenz-63 benchmark, and the OT filter with the
+    1024 -> 64 schedule."""
     import ot_filter as otf
+    from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS
 
     if method == "enkf":
-        return otf.enkf(inflation=1.02, perturbed=False, rotate=True)
+        return TWIN_CONFIGURATIONS["L96/EnKF-Sqrt-N24"].build_update(inflation=1.02)
     if method == "sir":
-        return otf.sir(ess_threshold=0.2, jitter=0.9)
+        return TWIN_CONFIGURATIONS["L63/PartFilt-N800"].build_update()
     return otf.ot(num_iterations=(1024, 64))
 
 
@@ -295,9 +297,9 @@ def _lorenz96_model(dim: int):
 
 @functools.lru_cache(maxsize=None)
 def _cached_lorenz96_model(dim: int, x64: bool):  # x64: the model's arrays take the mode's dtype
-    import ot_filter as otf
+    from ot_filter.experiments.twin_configurations import twin_model
 
-    return otf.models.lorenz96(dim=dim)
+    return twin_model("lorenz96", dim=dim)
 
 
 def _lorenz96_cell(options, cell, progress):

@@ -18,7 +18,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import symmetrise
+from ot_filter.lib.linalg import symmetrise
 
 Array = jax.Array
 

@@ -28,7 +28,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from ot_filter._linalg import mean_and_anomalies, symmetrise
+from ot_filter.lib.ensemble import masked_mean_and_anomalies, mean_and_anomalies
+from ot_filter.lib.gaussian import cholesky_gain
+from ot_filter.lib.linalg import symmetrise
 
 Array = jax.Array
 
@@ -82,20 +84,15 @@ def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
         _, x_anomalies = mean_and_anomalies(x)
         _, y_anomalies = mean_and_anomalies(y)
     else:
-        num = jnp.sum(active).astype(x.dtype)
-        x_anomalies = _masked_anomalies(x, active, num)
-        y_anomalies = _masked_anomalies(y, active, num)
+        num_active = jnp.sum(active, dtype=jnp.int32)
+        num = num_active.astype(x.dtype)
+        _, x_anomalies = masked_mean_and_anomalies(x, active, num_active)
+        _, y_anomalies = masked_mean_and_anomalies(y, active, num_active)
     cross = x_anomalies.T @ y_anomalies / (num - 1)
     cov_y = symmetrise(y_anomalies.T @ y_anomalies / (num - 1))
     ridge = GAIN_RIDGE * (1.0 + jnp.trace(cov_y) / cov_y.shape[0])
-    chol = jnp.linalg.cholesky(cov_y + ridge * jnp.eye(cov_y.shape[0], dtype=cov_y.dtype))
-    return jax.scipy.linalg.cho_solve((chol, True), cross.T).T
-
-
-def _masked_anomalies(values: Array, active: Array, num: Array) -> Array:
-    rows = active[:, None]
-    mean = jnp.sum(jnp.where(rows, values, 0.0), axis=0) / num
-    return jnp.where(rows, values - mean, 0.0)
+    gain, _ = cholesky_gain(cross, cov_y + ridge * jnp.eye(cov_y.shape[0], dtype=cov_y.dtype))
+    return gain
 
 
 def transport_input(xbar: Array, y: Array, ybar: Array, gain: Array | None) -> Array:

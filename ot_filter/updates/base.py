@@ -47,14 +47,25 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple
 
 import jax
-import jax.numpy as jnp
+
+from ot_filter.lib.static import bind
+from ot_filter.lib.weights import (  # noqa: F401 - the contract's helpers, re-exported
+    active_mask,
+    count_active,
+    count_dependent,
+    uniform_log_weights,
+)
 
 Array = jax.Array
 
 
 class BayesUpdate(NamedTuple):
     """A Bayes update: ``init(key, particles, model=None) -> state`` and
-    ``apply(key, state, particles, observation, model) -> (particles, state, info)``."""
+    ``apply(key, state, particles, observation, model) -> (particles, state, info)``.
+
+    The built-in builders bind module-level functions with ``lib.static.bind``: an update is then
+    a pytree whose leaves are its numeric settings (traced inside jit, so ``vmap`` over them
+    works and a new value does not recompile) and whose static part is its structure."""
 
     init: Callable[..., Any]  # (key, particles, model=None) -> state
     apply: Callable[..., tuple[Array, Any, Any]]
@@ -66,37 +77,10 @@ class UniformWeightsState(NamedTuple):
     log_weights: Array  # [N]: -log(num_active) on the active particles, -inf on padding
 
 
-def active_mask(log_weights: Array) -> Array:
-    """``[N]`` bool, False for padding (log-weight -inf)."""
-    return log_weights > -jnp.inf
+def init_uniform_weights(key: Array, particles: Array, model=None) -> UniformWeightsState:
+    """``init`` of the updates whose state is equal log-weights only (EnKF)."""
+    del key, model
+    return UniformWeightsState(uniform_log_weights(particles))
 
 
-def count_active(log_weights: Array) -> Array:
-    """The number of active particles, an int32 scalar (traced inside jit)."""
-    return jnp.sum(active_mask(log_weights), dtype=jnp.int32)
-
-
-def count_dependent(formula: Callable[[Any], Any], num_active: Array, num_particles: int):
-    """``formula(num_active)``, but ``formula(num_particles)`` on the Python int when nothing is
-    padded (``num_active == num_particles``).
-
-    Inside jit XLA folds an expression of a static count into constants and rewrites a division
-    by one into a multiplication by its reciprocal, which can differ by an ulp from the same
-    formula of a traced count (e.g. -log 7, x / 7). Taking the static branch when nothing is
-    padded keeps unpadded results what they were before padding existed: bit for bit for SIR;
-    for the EnKF the masking ``where``s change how XLA fuses (and contracts into FMAs) the
-    surrounding arithmetic, so jitted unpadded EnKF runs may differ in the last bits. Both
-    branches are computed: keep ``formula`` cheap (divisions, not the matrix products feeding
-    them).
-    """
-    return jnp.where(num_active == num_particles, formula(num_particles), formula(num_active))
-
-
-def uniform_log_weights(particles: Array, num_active: Array | int | None = None) -> Array:
-    """``[N]`` equal log-weights ``-log N``; with ``num_active = k``, ``-log k`` on the first k
-    entries and -inf (padding) on the rest."""
-    num_particles = particles.shape[0]
-    if num_active is None:
-        return jnp.full((num_particles,), -jnp.log(num_particles), dtype=particles.dtype)
-    value = count_dependent(lambda count: -jnp.log(count), num_active, num_particles)
-    return jnp.where(jnp.arange(num_particles) < num_active, value, -jnp.inf).astype(particles.dtype)
+uniform_weights_init = bind(init_uniform_weights)

@@ -51,20 +51,18 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import masked_mean_and_anomalies, truncated_pinv_solve
+from ot_filter.lib.ensemble import masked_mean_and_anomalies
+from ot_filter.lib.gaussian import cholesky_gain
+from ot_filter.lib.linalg import truncated_pinv_solve
+from ot_filter.lib.static import bind
+from ot_filter.lib.validation import check_number
+from ot_filter.lib.weights import active_mask, count_active, count_dependent
 from ot_filter.model import StateSpaceModel, observation_noise_factors
-from ot_filter.updates.base import (
-    BayesUpdate,
-    UniformWeightsState,
-    active_mask,
-    count_active,
-    count_dependent,
-    uniform_log_weights,
-)
+from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
 
 Array = jax.Array
 
-__all__ = ["EnKFInfo", "enkf"]
+__all__ = ["EnKFInfo", "EnKFSettings", "enkf", "enkf_apply"]
 
 MAX_ROTATED_PARTICLES = 4096
 
@@ -77,62 +75,67 @@ class EnKFInfo(NamedTuple):
     innovation_condition: Array
 
 
+class EnKFSettings(NamedTuple):
+    """The EnKF's numbers (traced: ``vmap`` over them runs in one program)."""
+
+    inflation: Array  # multiplicative inflation (>= 1) of the prior anomalies
+
+
 def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -> BayesUpdate:
     """Builds the EnKF Bayes update.
 
     Args:
-      inflation: multiplicative inflation (>= 1) of the prior anomalies.
+      inflation: multiplicative inflation (>= 1) of the prior anomalies; may be traced (a sweep
+        over it vmaps into one compiled program).
       perturbed: True for the stochastic perturbed-observation EnKF (simulation-based);
-        False for the deterministic square-root update (needs h and R in the model).
-      rotate: apply a random mean-preserving rotation to the posterior anomalies.
+        False for the deterministic square-root update (needs h and R in the model). Static.
+      rotate: apply a random mean-preserving rotation to the posterior anomalies. Static.
     """
-    inflation = float(inflation)
-    if not inflation >= 1.0:
-        raise ValueError(f"inflation must be >= 1, got {inflation}")
-    perturbed, rotate = bool(perturbed), bool(rotate)
+    settings = EnKFSettings(check_number("inflation", inflation, minimum=1.0))
+    return BayesUpdate(
+        uniform_weights_init,
+        bind(enkf_apply, settings, perturbed=bool(perturbed), rotate=bool(rotate)),
+    )
 
-    def init(key: Array, particles: Array, model: StateSpaceModel | None = None) -> UniformWeightsState:
-        del key, model
-        return UniformWeightsState(uniform_log_weights(particles))
 
-    def apply(key: Array, state: UniformWeightsState, particles: Array, observation: Array,
-              model: StateSpaceModel):
-        if rotate and particles.shape[0] > MAX_ROTATED_PARTICLES:
-            raise ValueError(
-                f"enkf(rotate=True) draws (N - 1)^2 normals per update; num_particles must be "
-                f"<= {MAX_ROTATED_PARTICLES}, got {particles.shape[0]}"
-            )
-        if not perturbed and not model.has_gaussian_observation_noise:
-            raise ValueError(
-                "enkf(perturbed=False) needs a model with additive Gaussian observation noise: "
-                "give model.observation_function and model.observation_noise_cov"
-            )
-        update_key, rotation_key = jax.random.split(key)
-        active = active_mask(state.log_weights)
-        num_active = count_active(state.log_weights)
-        mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
-        if inflation != 1.0:
-            anomalies = inflation * anomalies
-            particles = mean + anomalies
-        if perturbed:
-            particles, condition = _perturbed_update(
-                update_key, particles, anomalies, observation, model, active, num_active
-            )
-        else:
-            particles, condition = _square_root_update(
-                mean, anomalies, observation, model, active, num_active
-            )
-        posterior_mean, posterior_anomalies = masked_mean_and_anomalies(particles, active, num_active)
-        if rotate:
-            # Active rows first (stable: the unpadded order is kept), rotated, put back.
-            order = jnp.argsort((~active).astype(jnp.int32), stable=True)
-            rotated = _random_rotation(rotation_key, posterior_anomalies[order], num_active)
-            particles = posterior_mean + jnp.zeros_like(rotated).at[order].set(rotated)
-        # Padding leaves at the posterior mean: finite and bounded, whatever it came in as.
-        particles = jnp.where(active[:, None], particles, posterior_mean)
-        return particles, state, EnKFInfo(condition)
-
-    return BayesUpdate(init, apply)
+def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, particles: Array,
+               observation: Array, model: StateSpaceModel, *, perturbed: bool, rotate: bool):
+    """One EnKF analysis (``enkf``'s ``apply`` with its settings and structure given)."""
+    if rotate and particles.shape[0] > MAX_ROTATED_PARTICLES:
+        raise ValueError(
+            f"enkf(rotate=True) draws (N - 1)^2 normals per update; num_particles must be "
+            f"<= {MAX_ROTATED_PARTICLES}, got {particles.shape[0]}"
+        )
+    if not perturbed and not model.has_gaussian_observation_noise:
+        raise ValueError(
+            "enkf(perturbed=False) needs a model with additive Gaussian observation noise: "
+            "give model.observation_function and model.observation_noise_cov"
+        )
+    update_key, rotation_key = jax.random.split(key)
+    active = active_mask(state.log_weights)
+    num_active = count_active(state.log_weights)
+    mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
+    # Inflation 1 leaves the particles as they are (mean + anomalies may differ by an ulp).
+    inflation = settings.inflation
+    anomalies = inflation * anomalies
+    particles = jnp.where(inflation == 1.0, particles, mean + anomalies)
+    if perturbed:
+        particles, condition = _perturbed_update(
+            update_key, particles, anomalies, observation, model, active, num_active
+        )
+    else:
+        particles, condition = _square_root_update(
+            mean, anomalies, observation, model, active, num_active
+        )
+    posterior_mean, posterior_anomalies = masked_mean_and_anomalies(particles, active, num_active)
+    if rotate:
+        # Active rows first (stable: the unpadded order is kept), rotated, put back.
+        order = jnp.argsort((~active).astype(jnp.int32), stable=True)
+        rotated = _random_rotation(rotation_key, posterior_anomalies[order], num_active)
+        particles = posterior_mean + jnp.zeros_like(rotated).at[order].set(rotated)
+    # Padding leaves at the posterior mean: finite and bounded, whatever it came in as.
+    particles = jnp.where(active[:, None], particles, posterior_mean)
+    return particles, state, EnKFInfo(condition)
 
 
 def _perturbed_update(key, particles, anomalies, observation, model, active, num_active):
@@ -155,11 +158,10 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         innovation_cov = unbiased(predicted_anomalies.T @ predicted_anomalies) + noise_cov
         cross_cov = unbiased(anomalies.T @ predicted_anomalies)  # [n, m]
         innovations = jnp.where(rows, observation - predicted - noise, 0.0)  # [N, m]
-        chol = jnp.linalg.cholesky(innovation_cov)
         # K = Cov(X, h) (Cov(h) + R)^{-1}: solves against the n columns of Cov(X, h)^T, not the
         # N innovations. (An [m, N] right-hand side made jaxlib's CPU batched triangular solve
         # under vmap 60-150x slower for N >= 800 on 2 cores, and costs O(m^2 N) instead of O(m^2 n).)
-        gain = jax.scipy.linalg.cho_solve((chol, True), cross_cov.T).T  # [n, m]
+        gain, chol = cholesky_gain(cross_cov, innovation_cov)  # [n, m]
         diagonal = jnp.diag(chol)
         condition = (jnp.max(diagonal) / jnp.min(diagonal)) ** 2  # cheap lower bound
         return particles + innovations @ gain.T, condition

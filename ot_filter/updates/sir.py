@@ -36,22 +36,26 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter._linalg import psd_sqrt, weighted_covariance
-from ot_filter.metrics import ess as effective_sample_size
-from ot_filter.model import StateSpaceModel
-from ot_filter.sharding import replicated
-from ot_filter.updates.base import (
-    BayesUpdate,
+from ot_filter.lib.ensemble import weighted_covariance
+from ot_filter.lib.linalg import psd_sqrt
+from ot_filter.lib.static import bind
+from ot_filter.lib.validation import check_number, is_traced
+from ot_filter.lib.weights import (
     active_mask,
     count_active,
     count_dependent,
+    effective_sample_size,
+    normalise_log_weights,
     uniform_log_weights,
 )
+from ot_filter.model import StateSpaceModel
+from ot_filter.sharding import replicated
+from ot_filter.updates.base import BayesUpdate
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES
 
 Array = jax.Array
 
-__all__ = ["SIRState", "SIRInfo", "sir"]
+__all__ = ["SIRInfo", "SIRSettings", "SIRState", "sir", "sir_apply", "sir_init"]
 
 
 class SIRState(NamedTuple):
@@ -65,6 +69,13 @@ class SIRInfo(NamedTuple):
     degenerate: Array  # bool scalar: weights could not be normalised, update skipped
 
 
+class SIRSettings(NamedTuple):
+    """SIR's numbers (traced: ``vmap`` over them runs in one program)."""
+
+    ess_threshold: Array  # resample when ESS < ess_threshold * N
+    jitter: Array  # regularisation scale (DAPPER's ``reg``)
+
+
 def sir(
     resampling: str = "systematic",
     ess_threshold: float = 1.0,
@@ -73,70 +84,81 @@ def sir(
     """Builds the SIR (bootstrap particle filter) Bayes update.
 
     Args:
-      resampling: 'systematic' (default), 'multinomial', 'stratified' or 'residual'.
+      resampling: 'systematic' (default), 'multinomial', 'stratified' or 'residual'. Static.
       ess_threshold: resample when ESS < ess_threshold * N; 1.0 resamples every step, 0.0 never.
-      jitter: regularisation scale (DAPPER's ``reg``); 0 disables it.
+        May be traced; a concrete 1.0 compiles the resampling without its ``cond``.
+      jitter: regularisation scale (DAPPER's ``reg``); 0 disables it. May be traced; a
+        concrete 0 compiles no regularisation at all.
     """
     if resampling not in RESAMPLING_SCHEMES:
         raise ValueError(f"resampling must be one of {sorted(RESAMPLING_SCHEMES)}, got {resampling!r}")
-    ess_threshold = float(ess_threshold)
-    if not 0.0 <= ess_threshold <= 1.0:
-        raise ValueError(f"ess_threshold must lie in [0, 1], got {ess_threshold}")
-    jitter = float(jitter)
-    if not jitter >= 0.0:
-        raise ValueError(f"jitter must be >= 0, got {jitter}")
+    ess_threshold = check_number("ess_threshold", ess_threshold, minimum=0.0, maximum=1.0)
+    jitter = check_number("jitter", jitter, minimum=0.0)
+    # Concrete values that switch a part off keep it out of the program (as before numbers were
+    # traced); a traced value compiles the general form, which gives the same numbers.
+    always_resample = not is_traced(ess_threshold) and float(ess_threshold) >= 1.0
+    regularised = is_traced(jitter) or float(jitter) > 0.0
+    apply = bind(
+        sir_apply, SIRSettings(ess_threshold, jitter), resampling=resampling,
+        always_resample=always_resample, regularised=regularised,
+    )
+    return BayesUpdate(bind(sir_init), apply)
+
+
+def sir_init(key: Array, particles: Array, model: StateSpaceModel | None = None) -> SIRState:
+    del key, model
+    return SIRState(uniform_log_weights(particles))
+
+
+def sir_apply(settings: SIRSettings, key: Array, state: SIRState, particles: Array,
+              observation: Array, model: StateSpaceModel, *, resampling: str,
+              always_resample: bool, regularised: bool):
+    """One SIR analysis (``sir``'s ``apply`` with its settings and structure given)."""
+    if model.log_likelihood is None:
+        raise ValueError(
+            "sir needs model.log_likelihood (the analytical setting); this model only has a "
+            "simulator: use enkf or ot instead"
+        )
     resample_scheme = RESAMPLING_SCHEMES[resampling]
+    num_particles = particles.shape[0]
+    active = active_mask(state.log_weights)
+    num_active = count_active(state.log_weights)
+    log_likelihoods = jax.vmap(model.log_likelihood, (None, 0))(observation, particles)
+    log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
+    # `where`, not -inf + log l: a padding likelihood of +inf must not give NaN.
+    unnormalised = jnp.where(active, state.log_weights + log_likelihoods, -jnp.inf)
+    # Sharded particles: the N weights on every device, so that their normalisation, the ESS
+    # and the resampling round as on one device (a no-op without a mesh; sharding.py).
+    unnormalised = replicated(unnormalised)
+    normalised, increment = normalise_log_weights(unnormalised)  # prior weights are normalised
+    degenerate = ~jnp.isfinite(increment)
+    log_weights = jnp.where(degenerate, state.log_weights, normalised)
+    smallest = jnp.finfo(log_weights.dtype).min  # exp(smallest) = 0, but it is not padding
+    log_weights = jnp.where(active, jnp.maximum(log_weights, smallest), -jnp.inf)
+    ess = effective_sample_size(log_weights)
 
-    def init(key: Array, particles: Array, model: StateSpaceModel | None = None) -> SIRState:
-        del key, model
-        return SIRState(uniform_log_weights(particles))
-
-    def apply(key: Array, state: SIRState, particles: Array, observation: Array,
-              model: StateSpaceModel):
-        if model.log_likelihood is None:
-            raise ValueError(
-                "sir needs model.log_likelihood (the analytical setting); this model only has a "
-                "simulator: use enkf or ot instead"
+    def resample(key, particles, log_weights):
+        resample_key, jitter_key = jax.random.split(key)
+        resampled = particles[resample_scheme(resample_key, log_weights, num_active)]
+        if regularised:
+            resampled = resampled + _regularisation_noise(
+                jitter_key, particles, log_weights, settings.jitter, num_active
             )
-        num_particles = particles.shape[0]
-        active = active_mask(state.log_weights)
-        num_active = count_active(state.log_weights)
-        log_likelihoods = jax.vmap(model.log_likelihood, (None, 0))(observation, particles)
-        log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
-        # `where`, not -inf + log l: a padding likelihood of +inf must not give NaN.
-        unnormalised = jnp.where(active, state.log_weights + log_likelihoods, -jnp.inf)
-        # Sharded particles: the N weights on every device, so that their normalisation, the ESS
-        # and the resampling round as on one device (a no-op without a mesh; sharding.py).
-        unnormalised = replicated(unnormalised)
-        increment = jax.nn.logsumexp(unnormalised)  # prior weights are normalised
-        degenerate = ~jnp.isfinite(increment)
-        log_weights = jnp.where(degenerate, state.log_weights, unnormalised - increment)
-        smallest = jnp.finfo(log_weights.dtype).min  # exp(smallest) = 0, but it is not padding
-        log_weights = jnp.where(active, jnp.maximum(log_weights, smallest), -jnp.inf)
-        ess = effective_sample_size(log_weights)
+        return resampled, uniform_log_weights(particles, num_active)
 
-        def resample(key, particles, log_weights):
-            resample_key, jitter_key = jax.random.split(key)
-            resampled = particles[resample_scheme(resample_key, log_weights, num_active)]
-            if jitter > 0.0:
-                resampled = resampled + _regularisation_noise(
-                    jitter_key, particles, log_weights, jitter, num_active
-                )
-            return resampled, uniform_log_weights(particles, num_active)
-
-        if ess_threshold >= 1.0:
-            do_resample = jnp.asarray(True)
-            particles, log_weights = resample(key, particles, log_weights)
-        else:
-            threshold = count_dependent(lambda count: ess_threshold * count, num_active, num_particles)
-            do_resample = ess < threshold
-            particles, log_weights = jax.lax.cond(
-                do_resample, resample, lambda _, x, lw: (x, lw), key, particles, log_weights
-            )
-        info = SIRInfo(increment, ess, do_resample, degenerate)
-        return particles, SIRState(log_weights), info
-
-    return BayesUpdate(init, apply)
+    if always_resample:
+        do_resample = jnp.asarray(True)
+        particles, log_weights = resample(key, particles, log_weights)
+    else:
+        threshold = count_dependent(
+            lambda count: settings.ess_threshold * count, num_active, num_particles
+        )
+        do_resample = (ess < threshold) | (settings.ess_threshold >= 1.0)
+        particles, log_weights = jax.lax.cond(
+            do_resample, resample, lambda _, x, lw: (x, lw), key, particles, log_weights
+        )
+    info = SIRInfo(increment, ess, do_resample, degenerate)
+    return particles, SIRState(log_weights), info
 
 
 def _regularisation_noise(key, particles, log_weights, jitter, num_active=None):

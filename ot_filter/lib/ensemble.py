@@ -1,4 +1,10 @@
-"""Small, numerically careful linear-algebra helpers shared by the filters."""
+"""Ensemble statistics: means, anomalies, standard deviations and covariances of particles,
+equally weighted, masked (only the active rows of a padded particle axis) or weighted.
+
+Masked statistics never let a padding row in (``where``, not a product with 0, so that even inf
+or NaN there cannot leak) and divide by the number k of active rows; with every row active their
+values are those of the unmasked formulas.
+"""
 
 from __future__ import annotations
 
@@ -7,19 +13,12 @@ import jax.numpy as jnp
 
 Array = jax.Array
 
-
-def symmetrise(matrix: Array) -> Array:
-    """(M + M^T) / 2 over the last two axes."""
-    return 0.5 * (matrix + jnp.swapaxes(matrix, -1, -2))
-
-
-def psd_sqrt(matrix: Array) -> Array:
-    """A square root L with L L^T = M for a symmetric positive SEMI-definite M (eigh-based).
-
-    Unlike Cholesky it accepts singular matrices (e.g. noise acting on some components only).
-    """
-    eigenvalues, eigenvectors = jnp.linalg.eigh(symmetrise(matrix))
-    return eigenvectors * jnp.sqrt(jnp.clip(eigenvalues, 0.0))
+__all__ = [
+    "masked_mean_and_anomalies",
+    "masked_mean_and_std",
+    "mean_and_anomalies",
+    "weighted_covariance",
+]
 
 
 def mean_and_anomalies(particles: Array):
@@ -28,20 +27,29 @@ def mean_and_anomalies(particles: Array):
     return mean[..., 0, :], particles - mean
 
 
-def masked_mean_and_anomalies(particles: Array, active: Array, num_active: Array):
+def masked_mean_and_anomalies(particles: Array, active: Array, num_active: Array | None = None):
     """Mean ``[n]`` of the active rows of ``particles[N, n]`` (``active[N]`` bool, ``num_active``
-    of them) and their anomalies ``[N, n]``, with exact zero rows for the inactive (padding) ones.
-
-    Padding values never enter (``where``, not a multiplication by 0, so even inf or NaN there
-    cannot leak); with every row active the values are ``mean_and_anomalies``'s.
-    """
+    of them; counted here if not given) and their anomalies ``[N, n]``, with exact zero rows for
+    the inactive (padding) ones."""
+    if num_active is None:
+        num_active = jnp.sum(active, dtype=jnp.int32)
     rows = active[:, None]
     total = jnp.sum(jnp.where(rows, particles, 0.0), axis=0)
     num = particles.shape[0]
     # Nothing padded: total / num on the static num, jnp.mean's own expression (see
-    # updates.base.count_dependent).
+    # lib.weights.count_dependent).
     mean = jnp.where(num_active == num, total / num, total / jnp.asarray(num_active, particles.dtype))
     return mean, jnp.where(rows, particles - mean, 0.0)
+
+
+def masked_mean_and_std(values: Array, active: Array, num_active: Array | None = None):
+    """Mean ``[d]`` and (population, divisor k) standard deviation ``[d]`` over the active rows of
+    ``values[N, d]``."""
+    if num_active is None:
+        num_active = jnp.sum(active, dtype=jnp.int32)
+    mean, anomalies = masked_mean_and_anomalies(values, active, num_active)
+    variance = jnp.sum(anomalies**2, axis=0) / jnp.asarray(num_active, values.dtype)
+    return mean, jnp.sqrt(variance)
 
 
 def weighted_covariance(particles: Array, log_weights: Array) -> Array:
@@ -71,21 +79,3 @@ def weighted_covariance(particles: Array, log_weights: Array) -> Array:
     sum_squared = jnp.sum(weights**2, axis=-1)[..., None, None]
     covariance = jnp.einsum("...i,...ij,...ik->...jk", weights, anomalies, anomalies)
     return covariance / (1.0 - sum_squared)
-
-
-def truncated_pinv_solve(matrix: Array, rhs: Array, relative_cutoff: float):
-    """Minimum-norm solution of ``M Z = rhs`` for symmetric PSD ``M[m, m]`` (pseudo-inverse).
-
-    Eigen-directions with eigenvalue <= ``relative_cutoff * max eigenvalue`` are dropped
-    (round-off there would otherwise be amplified by 1 / cutoff); M = 0 gives Z = 0.
-
-    Returns ``(Z, condition)``: condition is max / min eigenvalue (inf if singular).
-    """
-    eigenvalues, eigenvectors = jnp.linalg.eigh(symmetrise(matrix))
-    largest = jnp.max(eigenvalues)
-    smallest = jnp.min(eigenvalues)
-    kept = eigenvalues > jnp.maximum(relative_cutoff * largest, jnp.finfo(matrix.dtype).tiny)
-    inverse_eigenvalues = jnp.where(kept, 1.0 / jnp.where(kept, eigenvalues, 1.0), 0.0)
-    condition = jnp.where(smallest > 0, largest / jnp.where(smallest > 0, smallest, 1.0), jnp.inf)
-    solution = eigenvectors @ (inverse_eigenvalues[:, None] * (eigenvectors.T @ rhs))
-    return solution, condition

@@ -1,0 +1,36 @@
+"""Gaussian conditioning through a Cholesky factor (Kalman filter, Kalman-Bucy, EnKF, the OT
+update's EnKF layer).
+
+For a jointly Gaussian (X, Y) with Cov(X, Y) = C ``[n, m]`` and Cov(Y) = S ``[m, m]`` (positive
+definite), E[X | Y = y] = E X + K (y - E Y) with the gain K = C S^{-1}. S is factored once,
+S = L L^T, and K is obtained by two triangular solves against the n columns of C^T, never by
+forming S^{-1}; the same factor gives the log-density of the innovation,
+log N(y - E Y; 0, S) = -m/2 log 2 pi - sum log diag L - |L^{-1} (y - E Y)|^2 / 2.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+__all__ = ["cholesky_gain", "gaussian_log_density"]
+
+
+def cholesky_gain(cross_covariance: Array, innovation_covariance: Array) -> tuple[Array, Array]:
+    """``(K[n, m], L[m, m])``: the gain ``K = C S^{-1}`` for ``C = cross_covariance[n, m]`` and a
+    positive-definite ``S = innovation_covariance[m, m]``, and S's lower Cholesky factor L.
+
+    The solves run against C's n columns (an ``[m, n]`` right-hand side), not against the data:
+    O(m^2 n) whatever the number of particles."""
+    chol = jnp.linalg.cholesky(innovation_covariance)
+    gain = jax.scipy.linalg.cho_solve((chol, True), cross_covariance.T).T
+    return gain, chol
+
+
+def gaussian_log_density(residual: Array, chol: Array) -> Array:
+    """``log N(residual; 0, L L^T)`` for ``residual[m]`` and a lower Cholesky factor ``L[m, m]``."""
+    whitened = jax.scipy.linalg.solve_triangular(chol, residual, lower=True)
+    dim = residual.shape[-1]
+    return -0.5 * dim * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(chol))) - 0.5 * whitened @ whitened
