@@ -42,6 +42,7 @@ from ot_filter.particles import (
     saved_step_indices,
     scan_with_snapshots,
 )
+from ot_filter.lib.static import functions_as_pytrees
 from ot_filter.updates.base import BayesUpdate
 
 Array = jax.Array
@@ -152,7 +153,7 @@ def run_filter(
                 f"particle_sharding"
             )
     result = _run_filter(
-        key, model, update, jnp.asarray(observations), num_particles, save_every,
+        key, model, functions_as_pytrees(update), jnp.asarray(observations), num_particles, save_every,
         initial_particles, num_active, bool(update_first), progress, particle_sharding,
     )
     return result._replace(saved_steps=saved_step_indices(save_every, num_steps))

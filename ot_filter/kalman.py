@@ -16,6 +16,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ot_filter.lib.gaussian import cholesky_gain, gaussian_log_density
 from ot_filter.lib.linalg import symmetrise
 from ot_filter.model import StateSpaceModel
 from ot_filter.models.linear_gaussian import LinearGaussianParameters
@@ -50,7 +51,6 @@ def _kalman_filter(parameters: LinearGaussianParameters, observations: Array) ->
     A, Q, H, R, m0, P0 = parameters
     dtype = jnp.result_type(A, observations)
     identity = jnp.eye(A.shape[0], dtype=dtype)
-    observation_dim = H.shape[0]
 
     def step(carry, y):
         mean, cov = carry
@@ -60,15 +60,8 @@ def _kalman_filter(parameters: LinearGaussianParameters, observations: Array) ->
         y = jnp.where(observed, y, H @ mean)
         innovation = y - H @ mean
         innovation_cov = symmetrise(H @ cov @ H.T + R)
-        chol = jnp.linalg.cholesky(innovation_cov)
-        # K = P- H^T S^{-1} via two triangular solves with S's Cholesky factor.
-        gain = jax.scipy.linalg.cho_solve((chol, True), H @ cov).T
-        whitened = jax.scipy.linalg.solve_triangular(chol, innovation, lower=True)
-        log_likelihood = (
-            -0.5 * observation_dim * jnp.log(2 * jnp.pi)
-            - jnp.sum(jnp.log(jnp.diag(chol)))
-            - 0.5 * whitened @ whitened
-        )
+        gain, chol = cholesky_gain(cov @ H.T, innovation_cov)  # K = P- H^T S^{-1}
+        log_likelihood = gaussian_log_density(innovation, chol)
         posterior_mean = mean + gain @ innovation
         joseph = identity - gain @ H
         posterior_cov = symmetrise(joseph @ cov @ joseph.T + gain @ R @ gain.T)

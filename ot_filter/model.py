@@ -12,7 +12,9 @@ which the EnKF then uses exactly.
 
 ``StateSpaceModel`` is a pytree: its functions are static (part of the tree structure, compared
 by identity) and its arrays (``observation_noise_cov``, ``parameters``) are leaves, so a model
-can be passed straight into ``jax.jit``-compiled functions. The built-in models' functions
+can be passed straight into ``jax.jit``-compiled functions. The built-in models bind module-level
+functions to their numbers with ``lib.static.bind``: those numbers are leaves too, and two models
+built with the same structure share the compiled programs (no cache of model objects needed). The built-in models' functions
 close over their own parameters: treat the leaves as read-only descriptions of them
 (``model._replace(observation_noise_cov=R2)`` changes what the EnKF uses, not the simulator);
 build a new model to change a parameter.
@@ -96,16 +98,25 @@ _FUNCTION_FIELDS = (
 
 
 def _flatten(model: StateSpaceModel):
-    children = (model.observation_noise_cov, model.parameters, model.observation_noise_factors)
-    static = tuple(getattr(model, name) for name in _FUNCTION_FIELDS)
-    return children, static
+    functions = tuple(getattr(model, name) for name in _FUNCTION_FIELDS)
+    # A function bound with lib.static.bind (a jax Partial) is a subtree: its numbers are leaves
+    # and its static part compares by value. Any other function is static aux, by identity.
+    is_tree = tuple(isinstance(function, jax.tree_util.Partial) for function in functions)
+    trees = tuple(function if tree else None for function, tree in zip(functions, is_tree))
+    static = tuple(None if tree else function for function, tree in zip(functions, is_tree))
+    children = (trees, model.observation_noise_cov, model.parameters, model.observation_noise_factors)
+    return children, (static, is_tree)
 
 
-def _unflatten(static, children) -> StateSpaceModel:
-    return StateSpaceModel(*static, *children)
+def _unflatten(aux, children) -> StateSpaceModel:
+    static, is_tree = aux
+    trees, *arrays = children
+    functions = (tree if flag else function for tree, function, flag in zip(trees, static, is_tree))
+    return StateSpaceModel(*functions, *arrays)
 
 
-# Functions are static aux data (hashable by identity); arrays are traced leaves.
+# Functions are static aux data (hashable by identity) unless bound with lib.static.bind (then
+# subtrees); arrays are traced leaves.
 jax.tree_util.register_pytree_node(StateSpaceModel, _flatten, _unflatten)
 
 

@@ -8,6 +8,7 @@ Compilation dominates the cost of these tests (about 2 s per filter on 2 cores),
 program serves several checks: run_filter's jit cache shares it between calls with the same
 update object, shapes and options (initial particles and num_active are traced)."""
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,10 +73,8 @@ def test_padding_values_do_not_matter_in_run_filter(setup, update):
                        initial_particles=padded(start, NUM_ACTIVE, fill), num_active=NUM_ACTIVE)
         for fill in ("copies", 1e3)
     ]
-    first, second = ([r.mean, r.spread, r.particles[:, :NUM_ACTIVE], r.log_weights,
-                      *jax.tree.leaves(r.info)] for r in results)
-    for a, b in zip(first, second):
-        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+    first, second = ((r.mean, r.spread, r.particles[:, :NUM_ACTIVE], r.log_weights, r.info) for r in results)
+    chex.assert_trees_all_close(first, second, rtol=1e-6, atol=1e-6)
     # The 1e3 padding is replaced by copies of the draws at SIR's first resampling, by the
     # posterior mean at every EnKF update.
     resampled = np.asarray(getattr(results[1].info, "resampled", np.ones(NUM_STEPS, bool)))
@@ -130,8 +129,7 @@ def test_padded_run_is_the_unpadded_run(setup, update):
     np.testing.assert_allclose(padded_run.spread, plain.spread, rtol=1e-5)
     np.testing.assert_allclose(padded_run.particles[:, :NUM_ACTIVE], plain.particles, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(padded_run.log_weights[:, :NUM_ACTIVE], plain.log_weights, rtol=1e-5, atol=1e-5)
-    for a, b in zip(jax.tree.leaves(padded_run.info), jax.tree.leaves(plain.info)):
-        np.testing.assert_allclose(a, b, rtol=1e-4)
+    chex.assert_trees_all_close(padded_run.info, plain.info, rtol=1e-4)
     if update is SIR:
         assert np.any(plain.info.resampled) and not np.all(plain.info.resampled)
 
@@ -176,8 +174,8 @@ def test_vmap_over_num_active_matches_separate_calls(setup):
     sweep = jax.jit(jax.vmap(run))(jnp.array(counts))
     for i, count in enumerate(counts[:3]):
         single = run(count)
-        for a, b in zip(jax.tree.leaves(single[:4]), jax.tree.leaves(sweep[:4])):
-            np.testing.assert_allclose(b[i], a, rtol=1e-6, atol=1e-6)
+        chex.assert_trees_all_close(jax.tree.map(lambda leaf: leaf[i], sweep[:4]), single[:4],
+                                    rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(sweep.particles[i, :, :count], single.particles[:, :count], rtol=1e-6, atol=1e-6)
     assert np.all(np.isfinite(sweep.mean[:3]))
     assert np.all(np.isnan(sweep.mean[3:])) and np.all(np.isnan(sweep.spread[3:]))

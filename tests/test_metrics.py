@@ -2,6 +2,7 @@
 
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -101,23 +102,29 @@ def test_crps_matches_gaussian_closed_form():
     assert np.all(metrics.crps(small, truth, fair=True) < metrics.crps(small, truth))
 
 
-def test_simple_metrics():
-    estimate, truth = jnp.array([[1.0, 2.0], [0.0, 0.0]]), jnp.array([[1.0, 0.0], [3.0, 4.0]])
-    np.testing.assert_allclose(metrics.mse(estimate, truth), [2.0, 12.5])
-    np.testing.assert_allclose(metrics.rmse(estimate, truth), np.sqrt([2.0, 12.5]))
-    np.testing.assert_allclose(metrics.ess(jnp.zeros(10)), 10.0, rtol=1e-6)
-    np.testing.assert_allclose(metrics.ess(jnp.full(10, -jnp.inf).at[2].set(0.0)), 1.0)
-    particles = jax.random.normal(jax.random.key(0), (50, 3))
-    expected = np.sqrt(np.mean(np.var(np.asarray(particles), axis=0, ddof=1)))
-    np.testing.assert_allclose(metrics.spread(particles), expected, rtol=1e-5)
-    np.testing.assert_allclose(metrics.spread(particles, jnp.zeros(50)), expected, rtol=1e-5)
-    # Weighted: the unbiased weighted variance, computed independently in float64.
-    log_weights = jnp.linspace(-3.0, 1.0, 50)
-    w = np.exp(np.asarray(log_weights, np.float64))
-    w /= w.sum()
-    x = np.asarray(particles, np.float64)
-    variance = w @ (x - w @ x) ** 2 / (1 - np.sum(w**2))
-    np.testing.assert_allclose(metrics.spread(particles, log_weights), np.sqrt(variance.mean()), rtol=1e-5)
+class TestSimpleMetrics(chex.TestCase):
+    """Closed forms of the plain (not internally jitted) metrics, called eagerly and inside
+    jax.jit: chex runs the test once per variant (test_simple_metrics_with_jit / _without_jit)."""
+
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_simple_metrics(self):
+        mse, rmse, ess, spread = map(self.variant, (metrics.mse, metrics.rmse, metrics.ess, metrics.spread))
+        estimate, truth = jnp.array([[1.0, 2.0], [0.0, 0.0]]), jnp.array([[1.0, 0.0], [3.0, 4.0]])
+        np.testing.assert_allclose(mse(estimate, truth), [2.0, 12.5])
+        np.testing.assert_allclose(rmse(estimate, truth), np.sqrt([2.0, 12.5]))
+        np.testing.assert_allclose(ess(jnp.zeros(10)), 10.0, rtol=1e-6)
+        np.testing.assert_allclose(ess(jnp.full(10, -jnp.inf).at[2].set(0.0)), 1.0)
+        particles = jax.random.normal(jax.random.key(0), (50, 3))
+        expected = np.sqrt(np.mean(np.var(np.asarray(particles), axis=0, ddof=1)))
+        np.testing.assert_allclose(spread(particles), expected, rtol=1e-5)
+        np.testing.assert_allclose(spread(particles, jnp.zeros(50)), expected, rtol=1e-5)
+        # Weighted: the unbiased weighted variance, computed independently in float64.
+        log_weights = jnp.linspace(-3.0, 1.0, 50)
+        w = np.exp(np.asarray(log_weights, np.float64))
+        w /= w.sum()
+        x = np.asarray(particles, np.float64)
+        variance = w @ (x - w @ x) ** 2 / (1 - np.sum(w**2))
+        np.testing.assert_allclose(spread(particles, log_weights), np.sqrt(variance.mean()), rtol=1e-5)
 
 
 def test_median_bandwidth_ignores_duplicates():

@@ -1,5 +1,6 @@
 """The OT Bayes update: interface, diagnostics, fallback, jit/vmap behaviour and accuracy."""
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,7 +55,7 @@ def test_transport_reproduces_apply_and_is_conditional():
     # Several observations at once, without retraining: [K, m] -> [K, N, n].
     ys = jnp.array([[1.0, 0.5], [2.0, 0.1], [0.2, 3.0]])
     moved = update.transport(state, particles, ys)
-    assert moved.shape == (3, 200, 2)
+    chex.assert_shape(moved, (3, 200, 2))
     np.testing.assert_allclose(moved[0], posterior, atol=1e-5)
     assert not np.allclose(moved[1], moved[2])
     assert info.loss.shape == (300,) and np.all(np.isfinite(info.loss))
@@ -91,7 +92,7 @@ def test_divergence_is_detected_and_falls_back_to_enkf(learning_rate):
     expected, _, _ = enkf.apply(fallback_key, enkf.init(None, particles), particles, y, STATIC)
     np.testing.assert_allclose(posterior, expected, atol=1e-6)
     # The diverged networks are not carried forward.
-    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(new_state.training))
+    chex.assert_tree_all_finite(new_state.training)
     # A healthy training is not flagged.
     _, _, healthy = run_once(otf.ot(num_iterations=50), particles, y)
     assert not bool(healthy.diverged)

@@ -2,6 +2,7 @@
 
 import json
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,11 +20,11 @@ def test_a_diverging_training_falls_back_and_the_filter_completes():
     update = otf.ot(num_iterations=(40, 20), potential_optimizer=optax.sgd(1e30), concavity_points=32)
     result = otf.run_filter(jax.random.key(1), DYNAMIC, update, observations, num_particles=128)
     assert np.all(np.asarray(result.info.diverged))
-    assert np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.particles))
+    chex.assert_tree_all_finite((result.mean, result.particles))
     # info never holds NaN (+inf marks a non-finite loss); the carried networks are healthy.
     for leaf in jax.tree.leaves(result.info):
         assert not np.any(np.isnan(np.asarray(leaf, dtype=float)))
-    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(result.final_state.training))
+    chex.assert_tree_all_finite(result.final_state.training)
     # Every step fell back to the EnKF: the spread stays that of an EnKF, no collapse or blow-up.
     enkf_result = otf.run_filter(jax.random.key(1), DYNAMIC, otf.enkf(), observations, num_particles=128)
     ratio = np.asarray(result.spread) / np.asarray(enkf_result.spread)
@@ -71,8 +72,7 @@ def test_ot_update_ignores_padding_of_a_masked_particle_axis():
         posterior, new_state, info = update.apply(jax.random.key(8), state, particles, y, DYNAMIC)
         assert np.all(np.isneginf(new_state.log_weights[48:]))
         outputs.append((posterior[:48], info.final_loss, info.min_hessian_eigenvalue, new_state.gain))
-    for a, b in zip(*outputs):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+    chex.assert_trees_all_close(*outputs, rtol=1e-5, atol=1e-5)
 
 
 def test_padded_ot_filter_matches_the_unpadded_one():

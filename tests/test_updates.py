@@ -1,5 +1,6 @@
 """Single Bayes-update properties with closed forms, degenerate cases and input checks."""
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -115,17 +116,21 @@ def test_sir_degenerate_weights_never_nan():
     assert np.all(np.isfinite(out)) and np.isfinite(info.ess)
 
 
-def test_sir_carries_weights_below_threshold():
-    model, particles, y, _ = one_step_problem()
-    update = otf.sir(ess_threshold=0.0)  # never resample
-    state = update.init(None, particles)
-    out, new_state, info = update.apply(jax.random.key(0), state, particles, y, model)
-    assert not bool(info.resampled)
-    np.testing.assert_array_equal(out, particles)
-    expected = jax.vmap(model.log_likelihood, (None, 0))(y, particles)
-    expected = expected - jax.nn.logsumexp(expected)
-    np.testing.assert_allclose(new_state.log_weights, expected, atol=1e-5)
-    np.testing.assert_allclose(info.ess, otf.metrics.ess(expected), rtol=1e-5)
+class TestSirCarriesWeights(chex.TestCase):
+    """The SIR update called eagerly and inside jax.jit (chex variants: _with_jit, _without_jit)."""
+
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_sir_carries_weights_below_threshold(self):
+        model, particles, y, _ = one_step_problem()
+        update = otf.sir(ess_threshold=0.0)  # never resample
+        state = update.init(None, particles)
+        out, new_state, info = self.variant(update.apply)(jax.random.key(0), state, particles, y, model)
+        assert not bool(info.resampled)
+        np.testing.assert_array_equal(out, particles)
+        expected = jax.vmap(model.log_likelihood, (None, 0))(y, particles)
+        expected = expected - jax.nn.logsumexp(expected)
+        np.testing.assert_allclose(new_state.log_weights, expected, atol=1e-5)
+        np.testing.assert_allclose(info.ess, otf.metrics.ess(expected), rtol=1e-5)
 
 
 def test_sir_jitter_adds_the_documented_covariance():

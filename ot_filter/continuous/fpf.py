@@ -23,11 +23,17 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
+import numpy as np  # noqa: F401 - FPFResult.saved_steps is a NumPy array
 
 from ot_filter.continuous.gains.base import Gain
 from ot_filter.continuous.sde import SDEModel, check_time_step, diffusion_increment, sde_dimensions
-from ot_filter.particles import check_progress, scan_with_snapshots
+from ot_filter.lib.static import functions_as_pytrees
+from ot_filter.particles import (
+    check_filter_arguments,
+    initial_particle_state,
+    saved_step_indices,
+    scan_with_snapshots,
+)
 
 Array = jax.Array
 
@@ -130,55 +136,48 @@ def run_fpf(
         )
     n, m, _ = sde_dimensions(model)
     check_time_step(dt)
-    if isinstance(num_particles, bool) or not isinstance(num_particles, (int, np.integer)) or num_particles < 2:
-        raise ValueError(f"num_particles must be an int >= 2, got {num_particles!r}")
-    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 0:
-        raise ValueError(f"save_every must be an int >= 0, got {save_every!r}")
     if jnp.ndim(increments) != 2 or jnp.shape(increments)[1] != m or jnp.shape(increments)[0] < 1:
         raise ValueError(
             f"increments must have shape [T >= 1, {m}] for this model, got {jnp.shape(increments)}"
         )
-    if initial_particles is not None and jnp.shape(initial_particles) != (num_particles, n):
-        raise ValueError(
-            f"initial_particles must have shape {(num_particles, n)}, got {jnp.shape(initial_particles)}"
-        )
     num_steps = jnp.shape(increments)[0]
-    if save_every > num_steps:
-        save_every = 0
-    progress = check_progress(progress)
+    num_particles, save_every, progress = check_filter_arguments(
+        num_particles, save_every, num_steps, n, initial_particles, progress
+    )
     result = _run_fpf(
-        key, model, gain, jnp.asarray(increments), dt, int(num_particles), int(save_every),
+        key, model, functions_as_pytrees(gain), jnp.asarray(increments), dt, num_particles, save_every,
         initial_particles, bool(stratonovich), progress,
     )
-    saved = np.arange(save_every - 1, num_steps, save_every) if save_every else np.zeros(0, int)
-    return result._replace(saved_steps=saved)
+    return result._replace(saved_steps=saved_step_indices(save_every, num_steps))
 
 
-@partial(jax.jit, static_argnames=("gain", "num_particles", "save_every", "stratonovich", "progress"))
+# The gain is a traced argument: its numbers are leaves (lib.static.bind), so new values reuse
+# the program and vmap over them works.
+@partial(jax.jit, static_argnames=("num_particles", "save_every", "stratonovich", "progress"))
 def _run_fpf(key, model, gain, increments, dt, num_particles, save_every, initial_particles, stratonovich,
              progress):
     init_key, gain_key, steps_key = jax.random.split(key, 3)
-    if initial_particles is None:
-        particles = jax.vmap(model.sample_initial)(jax.random.split(init_key, num_particles))
-    else:
-        particles = jnp.asarray(initial_particles)
+    particle_state = initial_particle_state(init_key, model.sample_initial, num_particles, initial_particles)
+    particles = particle_state.particles
     increments = increments.astype(particles.dtype)
     std = jnp.asarray(model.observation_noise_std, particles.dtype)
     state = gain.init(gain_key, particles, jax.vmap(model.observation_function)(particles) / std)
 
     def step(carry, inputs):
-        particles, state = carry
+        particle_state, state = carry
         step_key, increment = inputs
         particles, state, info, rejected = fpf_step(
-            step_key, model, gain, state, particles, increment, dt, stratonovich
+            step_key, model, gain, state, particle_state.particles, increment, dt, stratonovich
         )
         mean = jnp.mean(particles, axis=0)
         variance = jnp.var(particles, axis=0, ddof=1)
-        return (particles, state), (mean, variance, info, jnp.all(jnp.isfinite(increment)), rejected)
+        outputs = (mean, variance, info, jnp.all(jnp.isfinite(increment)), rejected)
+        return (particle_state._replace(particles=particles), state), outputs
 
     keys = jax.random.split(steps_key, increments.shape[0])
     carry, outputs, saved = scan_with_snapshots(
-        step, (particles, state), (keys, increments), save_every, lambda carry: carry[0], progress
+        step, (particle_state, state), (keys, increments), save_every,
+        lambda carry: carry[0].particles, progress,
     )
     mean, variance, info, observed, rejected = outputs
-    return FPFResult(mean, variance, info, observed, saved, None, carry[0], carry[1], rejected)
+    return FPFResult(mean, variance, info, observed, saved, None, carry[0].particles, carry[1], rejected)

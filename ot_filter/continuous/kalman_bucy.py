@@ -25,6 +25,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ot_filter.lib.gaussian import cholesky_gain
 from ot_filter.lib.linalg import symmetrise
 from ot_filter.continuous.models import LinearSDEParameters
 from ot_filter.continuous.sde import SDEModel, check_time_step
@@ -66,8 +67,7 @@ def _kalman_bucy(parameters: LinearSDEParameters, increments: Array, dt) -> Kalm
     def step(carry, dy):
         mean, cov = carry
         S = symmetrise(H @ cov @ H.T * dt + R)
-        factor = jax.scipy.linalg.cho_factor(S, lower=True)
-        gain = jax.scipy.linalg.cho_solve(factor, H @ cov).T  # P H^T S^{-1}
+        gain, _ = cholesky_gain(cov @ H.T, S)  # P H^T S^{-1}
         mean = mean + gain @ (dy - H @ mean * dt)
         reduction = jnp.eye(n, dtype=dtype) - gain @ H * dt
         cov = symmetrise(reduction @ cov @ reduction.T + gain @ R @ gain.T * dt)

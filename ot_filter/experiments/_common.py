@@ -32,9 +32,9 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
 def simulate_truths(key, model, num_steps: int, num_simulations: int):
     """``(states[S, T, n], observations[S, T, m])``: independent trajectories of the model.
 
-    Jitted at module level: with the same model object (functions are static cache keys; the
-    experiments keep one per setting) a sweep's cells reuse one compiled program instead of
-    retracing an eager vmap for every cell (0.6 s a cell for a small Lorenz-96 sweep).
+    Jitted at module level: models built alike are equal as static structure (their numbers are
+    traced leaves), so a sweep's cells reuse one compiled program instead of retracing an eager
+    vmap for every cell (0.6 s a cell for a small Lorenz-96 sweep).
     """
     return jax.vmap(lambda k: simulate(k, model, num_steps))(jax.random.split(key, num_simulations))
 

@@ -25,7 +25,7 @@ can run as one program over a padded particle axis (``padded=True``: N_max parti
 
 from __future__ import annotations
 
-from functools import lru_cache, partial
+from functools import partial
 from typing import Sequence
 
 import jax
@@ -71,14 +71,8 @@ MMD_BATCH = 8
 
 
 def dynamic_model(dim: int):
-    """The example's model in dimension ``dim``, one object per dimension and float mode: its
-    functions are static parts of the compiled programs' cache keys, so repeated runs (a sweep's
-    cells) reuse the truth simulation and filters compiled for it."""
-    return _dynamic_model(dim, jax.config.jax_enable_x64)
-
-
-@lru_cache(maxsize=None)
-def _dynamic_model(dim: int, x64: bool):  # x64: the model's arrays take the mode's dtype
+    """The example's model in dimension ``dim`` (a pytree of bound functions compared by value:
+    rebuilding it reuses the compiled truth simulation and filters)."""
     return squared_observation(dim=dim)
 
 

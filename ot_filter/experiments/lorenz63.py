@@ -26,7 +26,6 @@ far from the truth near 25) and the MSE sits at 300-700 for ~50 steps.
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Sequence
 
 import jax
@@ -53,13 +52,8 @@ _SETTING = dict(dt=TIME_STEP, integrator="euler", steps_per_observation=1, obser
 
 
 def lorenz63_models():
-    """``(truth_model, filter_model)`` of the chapter's setting (see the module docstring); the
-    same objects for every call in a float mode, so compiled programs are reused across runs."""
-    return _lorenz63_models(jax.config.jax_enable_x64)
-
-
-@lru_cache(maxsize=None)
-def _lorenz63_models(x64: bool):  # x64: the models' arrays take the mode's dtype
+    """``(truth_model, filter_model)`` of the chapter's setting (see the module docstring). Models
+    are pytrees of bound functions compared by value: rebuilding them reuses compiled programs."""
     truth = lorenz63(process_noise_std=0.0, initial_mean=(25.0, 25.0, 25.0), **_SETTING)
     filtering = lorenz63(process_noise_std=0.1**0.5, initial_mean=(0.0, 0.0, 0.0), **_SETTING)
     return truth, filtering

@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 import jax
 
-__all__ = ["StaticFunction", "bind"]
+__all__ = ["StaticFunction", "bind", "functions_as_pytrees"]
 
 
 class StaticFunction(functools.partial):
@@ -56,3 +56,15 @@ def bind(function: Callable, settings: Any = _NO_SETTINGS, **structure) -> jax.t
     if settings is _NO_SETTINGS:
         return jax.tree_util.Partial(static)
     return jax.tree_util.Partial(static, settings)
+
+
+def functions_as_pytrees(functions):
+    """A NamedTuple of functions (an update, a gain) with every plain function wrapped as a
+    leafless ``jax.tree_util.Partial`` (static, compared by identity), so that the whole tuple
+    can be a traced argument of a jitted filter; bound functions are kept as they are."""
+    wrapped = {
+        name: jax.tree_util.Partial(value)
+        for name, value in zip(functions._fields, functions)
+        if callable(value) and not isinstance(value, jax.tree_util.Partial)
+    }
+    return functions._replace(**wrapped) if wrapped else functions

@@ -47,7 +47,8 @@ def check_number(
 ):
     """A real scalar setting: a traced one as it is, a concrete one checked against
     ``[minimum, maximum]`` (``(minimum, maximum]`` with ``strict_minimum``) and returned as a
-    Python float (a concrete scalar array keeps its array type: its dtype is the caller's)."""
+    Python float (also a concrete scalar array: a weakly typed leaf, so that 1.1 and
+    ``jnp.float32(1.1)`` share one compiled program and take the filter's precision)."""
     if is_traced(value):
         if jnp.ndim(value) != 0:
             raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(value)}")
@@ -71,8 +72,10 @@ def check_number(
         if maximum is not None:
             bounds.append(f"<= {maximum:g}")
         what = " and ".join(bounds) if bounds else "a number"
-        raise ValueError(f"{name} must be {'finite and ' if finite else ''}{what}, got {value!r}")
-    return value if hasattr(value, "dtype") else number
+        if finite and math.isinf(number) and lower_ok and (maximum is None or number <= maximum):
+            what = "finite"
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+    return number
 
 
 def check_finite_array(name: str, value: Any, shape: tuple[int, ...] | None = None):

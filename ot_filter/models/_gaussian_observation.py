@@ -7,23 +7,35 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
+from ot_filter.lib.static import bind
+from ot_filter.lib.validation import check_number
 from ot_filter.model import StateSpaceModel
 
 Array = jax.Array
 
 
-def check_nonnegative(name: str, value: float) -> float:
-    value = float(value)
-    if not value >= 0.0:  # also rejects NaN
-        raise ValueError(f"{name} must be >= 0, got {value}")
-    return value
+def check_nonnegative(name: str, value):
+    """A number >= 0 (a traced one passes unchecked: ``lib.validation.check_number``)."""
+    return check_number(name, value, minimum=0.0)
 
 
-def check_positive(name: str, value: float) -> float:
-    value = float(value)
-    if not value > 0.0:
-        raise ValueError(f"{name} must be > 0, got {value}")
-    return value
+def check_positive(name: str, value):
+    """A number > 0 (a traced one passes unchecked)."""
+    return check_number(name, value, minimum=0.0, strict_minimum=True)
+
+
+def gaussian_sample_observation(numbers, key, x):
+    """``h(x) + std * W``; ``numbers = (std, h)``."""
+    std, observation_function = numbers
+    hx = observation_function(x)
+    return hx + std * jax.random.normal(key, hx.shape, hx.dtype)
+
+
+def gaussian_log_likelihood(numbers, y, x):
+    """``log N(y; h(x), std^2 I)``; ``numbers = (std, h)``."""
+    std, observation_function = numbers
+    log_normaliser = -y.shape[-1] * (0.5 * jnp.log(2 * jnp.pi) + jnp.log(std))
+    return log_normaliser - 0.5 * jnp.sum(((y - observation_function(x)) / std) ** 2)
 
 
 def with_gaussian_observation(
@@ -34,22 +46,21 @@ def with_gaussian_observation(
     observation_noise_std: float,
     parameters=None,
 ) -> StateSpaceModel:
-    """Completes a model with ``Y = h(X) + std * W``, ``W ~ N(0, I_m)``: sampler, h, R, log l."""
+    """Completes a model with ``Y = h(X) + std * W``, ``W ~ N(0, I_m)``: sampler, h, R, log l.
+
+    With ``observation_function`` a ``lib.static.bind`` pytree (the built-in models), the
+    sampler and log-likelihood are too: the model's numbers are traced leaves and two models
+    built alike are equal as static structure (no recompilation)."""
     std = check_positive("observation_noise_std", observation_noise_std)
-    log_normaliser = -observation_dim * (0.5 * jnp.log(2 * jnp.pi) + jnp.log(std))
-
-    def sample_observation(key, x):
-        hx = observation_function(x)
-        return hx + std * jax.random.normal(key, hx.shape, hx.dtype)
-
-    def log_likelihood(y, x):
-        return log_normaliser - 0.5 * jnp.sum(((y - observation_function(x)) / std) ** 2)
-
+    as_tree = observation_function
+    if not isinstance(as_tree, jax.tree_util.Partial):
+        as_tree = jax.tree_util.Partial(observation_function)  # a plain function: static, by identity
+    numbers = (std, as_tree)
     return StateSpaceModel(
         sample_initial=sample_initial,
         sample_transition=sample_transition,
-        sample_observation=sample_observation,
-        log_likelihood=log_likelihood,
+        sample_observation=bind(gaussian_sample_observation, numbers),
+        log_likelihood=bind(gaussian_log_likelihood, numbers),
         observation_function=observation_function,
         observation_noise_cov=std**2 * jnp.eye(observation_dim),
         parameters=parameters,

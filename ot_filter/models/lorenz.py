@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ot_filter.lib.static import bind
+from ot_filter.lib.validation import is_traced
 from ot_filter.model import StateSpaceModel
 from ot_filter.models._gaussian_observation import (
     check_nonnegative,
@@ -45,7 +47,7 @@ def lorenz96_vector_field(x: Array, forcing=8.0) -> Array:
     return (padded[..., 3:] - padded[..., :-3]) * padded[..., 1:-2] - x + forcing
 
 
-def _integrator_step(vector_field: Callable, dt: float, integrator: str) -> Callable:
+def _integrator_step(vector_field: Callable, dt, integrator: str) -> Callable:
     if integrator == "rk4":
 
         def step(x):
@@ -65,8 +67,37 @@ def _integrator_step(vector_field: Callable, dt: float, integrator: str) -> Call
     return step
 
 
+# The model's functions are module-level functions bound to their numbers (traced leaves) and
+# structure (static, compared by value) with lib.static.bind: two models built alike share
+# compiled programs, and a model built from traced numbers can be vmapped over.
+
+
+def _sample_initial(numbers, key, *, dim: int):
+    mean, std = numbers
+    return mean + std * jax.random.normal(key, (dim,))
+
+
+def _sample_transition(numbers, key, x, *, vector_field: Callable, integrator: str, steps: int,
+                       noisy: bool):
+    dt, process_std, field_parameters = numbers
+    step = _integrator_step(lambda x: vector_field(x, *field_parameters), dt, integrator)
+    if not noisy:
+        return jax.lax.fori_loop(0, steps, lambda _, x: step(x), x)
+
+    def noisy_step(i, x):
+        noise = jax.random.normal(jax.random.fold_in(key, i), x.shape, x.dtype)
+        return step(x) + process_std * noise
+
+    return jax.lax.fori_loop(0, steps, noisy_step, x)
+
+
+def _observe_components(x, *, observed: tuple):
+    return x[np.asarray(observed)]
+
+
 def _ode_model(
     vector_field: Callable,
+    field_parameters: tuple,
     dim: int,
     dt: float,
     integrator: str,
@@ -77,11 +108,13 @@ def _ode_model(
     initial_mean: Array,
     initial_std: float,
 ) -> StateSpaceModel:
-    check_positive("dt", dt)
+    dt = check_positive("dt", dt)
     if not isinstance(steps_per_observation, int) or steps_per_observation < 1:
         raise ValueError(
             f"steps_per_observation must be a positive int, got {steps_per_observation!r}"
         )
+    if integrator not in ("rk4", "euler"):
+        raise ValueError(f"integrator must be 'rk4' or 'euler', got {integrator!r}")
     process_std = check_nonnegative("process_noise_std", process_noise_std)
     initial_std = check_nonnegative("initial_std", initial_std)
     initial_mean = jnp.asarray(initial_mean, dtype=float)
@@ -92,26 +125,13 @@ def _ode_model(
         raise ValueError(f"observed must be a non-empty sequence of indices, got {observed!r}")
     if observed.min() < 0 or observed.max() >= dim:
         raise ValueError(f"observed indices must lie in [0, {dim}), got {observed.tolist()}")
-    step = _integrator_step(vector_field, float(dt), integrator)
-
-    def sample_initial(key):
-        return initial_mean + initial_std * jax.random.normal(key, (dim,))
-
-    def sample_transition(key, x):
-        if process_std == 0.0:
-            return jax.lax.fori_loop(0, steps_per_observation, lambda _, x: step(x), x)
-
-        def noisy_step(i, x):
-            noise = jax.random.normal(jax.random.fold_in(key, i), x.shape, x.dtype)
-            return step(x) + process_std * noise
-
-        return jax.lax.fori_loop(0, steps_per_observation, noisy_step, x)
-
-    def observation_function(x):
-        return x[observed]
-
+    noisy = is_traced(process_std) or process_std != 0.0
     return with_gaussian_observation(
-        sample_initial, sample_transition, observation_function, observed.size,
+        bind(_sample_initial, (initial_mean, initial_std), dim=dim),
+        bind(_sample_transition, (dt, process_std, tuple(field_parameters)), vector_field=vector_field,
+             integrator=integrator, steps=steps_per_observation, noisy=noisy),
+        bind(_observe_components, observed=tuple(int(i) for i in observed)),
+        observed.size,
         observation_noise_std,
     )
 
@@ -131,7 +151,7 @@ def lorenz63(
 ) -> StateSpaceModel:
     """Lorenz-63; defaults: Sakov et al. (2012) twin experiment as in DAPPER."""
     return _ode_model(
-        lambda x: lorenz63_vector_field(x, sigma, rho, beta), 3, dt, integrator,
+        lorenz63_vector_field, (sigma, rho, beta), 3, dt, integrator,
         steps_per_observation, observed, observation_noise_std, process_noise_std,
         initial_mean, initial_std,
     )
@@ -160,7 +180,7 @@ def lorenz96(
         initial_mean = np.zeros(dim)
         initial_mean[0] = 1.0
     return _ode_model(
-        lambda x: lorenz96_vector_field(x, forcing), dim, dt, integrator,
+        lorenz96_vector_field, (forcing,), dim, dt, integrator,
         steps_per_observation, observed, observation_noise_std, process_noise_std,
         initial_mean, initial_std,
     )

@@ -17,8 +17,9 @@ Coordinates are independent, so exact posteriors factorise into 1-D ones.
 from __future__ import annotations
 
 import jax
-import numpy as np
 
+from ot_filter.lib.static import bind
+from ot_filter.lib.validation import check_number, is_traced
 from ot_filter.model import StateSpaceModel
 from ot_filter.models._gaussian_observation import (
     check_nonnegative,
@@ -47,27 +48,37 @@ def squared_observation(
     """
     if not isinstance(dim, int) or dim < 1:
         raise ValueError(f"dim must be a positive int, got {dim!r}")
-    check_nonnegative("alpha", alpha)
-    check_positive("noise", noise)
-    scale = float(observation_scale)
-    if scale == 0.0 or not np.isfinite(scale):
+    alpha = check_nonnegative("alpha", alpha)
+    noise = check_positive("noise", noise)
+    scale = check_number("observation_scale", observation_scale)
+    if not is_traced(scale) and scale == 0.0:
         raise ValueError(f"observation_scale must be finite and non-zero, got {observation_scale}")
     if process_noise_std is None:
-        process_noise_std = 2.0 * float(noise)
+        process_noise_std = 2.0 * noise
     process_std = check_nonnegative("process_noise_std", process_noise_std)
-    decay = 1.0 - float(alpha)
-
-    def sample_initial(key):
-        return jax.random.normal(key, (dim,))
-
-    def sample_transition(key, x):
-        if static:
-            return x
-        return decay * x + process_std * jax.random.normal(key, x.shape, x.dtype)
-
-    def observation_function(x):
-        return scale * x * x
-
+    decay = 1.0 - alpha
     return with_gaussian_observation(
-        sample_initial, sample_transition, observation_function, dim, noise
+        bind(_sample_initial, dim=dim),
+        bind(_sample_transition, (decay, process_std), static=bool(static)),
+        bind(_observation_function, scale),
+        dim,
+        noise,
     )
+
+
+# Module-level functions bound to their numbers (traced leaves) and structure (lib.static.bind).
+
+
+def _sample_initial(key, *, dim):
+    return jax.random.normal(key, (dim,))
+
+
+def _sample_transition(numbers, key, x, *, static):
+    if static:
+        return x
+    decay, process_std = numbers
+    return decay * x + process_std * jax.random.normal(key, x.shape, x.dtype)
+
+
+def _observation_function(scale, x):
+    return scale * x * x

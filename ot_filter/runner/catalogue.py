@@ -52,19 +52,15 @@ def cell_key(seed: int, *coordinates: int) -> jax.Array:
     return key
 
 
-_COMPILED: dict = {}  # cell configuration -> compiled program (blocks of equal size share one)
-
-
-def _timed(cache_key, function, *args):
-    """(output as NumPy, {"compile_s", "run_s"}) for ``jax.jit(function)(*args)``, compiled once
-    per ``cache_key`` (which must determine the program) in this process."""
+def _timed(function, *args):
+    """(output as NumPy, {"compile_s", "run_s"}) for a ``jax.jit``-ted ``function``. Compiled
+    programs are JAX's own cache: models and updates are pytrees whose numbers are traced, so the
+    cells of a sweep that differ only in numbers (or rebuilt objects) reuse one program."""
     start = time.perf_counter()
-    if cache_key not in _COMPILED:
-        _COMPILED.clear()  # one program at a time: a sweep's cells come grouped by configuration
-        _COMPILED[cache_key] = jax.jit(function).lower(*args).compile()
+    compiled = function.lower(*args).compile()
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
-    output = jax.block_until_ready(_COMPILED[cache_key](*args))
+    output = jax.block_until_ready(compiled(*args))
     run_s = time.perf_counter() - start
     return jax.tree.map(np.asarray, output), {"compile_s": compile_s, "run_s": run_s}
 
@@ -288,18 +284,15 @@ def lorenz96_update(method: str):
     return otf.ot(num_iterations=(1024, 64))
 
 
-def _lorenz96_model(dim: int):
-    """One model object per dimension and float mode: its functions are static parts of the
-    compiled programs' cache keys, so the cells of a sweep reuse the truth simulation and filter
-    compiled once."""
-    return _cached_lorenz96_model(dim, jax.config.jax_enable_x64)
+@functools.partial(jax.jit, static_argnames=("num_particles", "progress"))
+def _lorenz96_means(keys, model, update, observations, num_particles, progress):
+    """Filter means ``[S, T, n]`` of every simulation (one program per shapes and structure)."""
+    import ot_filter as otf
 
+    def one(key, y):
+        return otf.run_filter(key, model, update, y, num_particles, save_every=0, progress=progress).mean
 
-@functools.lru_cache(maxsize=None)
-def _cached_lorenz96_model(dim: int, x64: bool):  # x64: the model's arrays take the mode's dtype
-    from ot_filter.experiments.twin_configurations import twin_model
-
-    return twin_model("lorenz96", dim=dim)
+    return jax.vmap(one)(keys, observations)
 
 
 def _lorenz96_cell(options, cell, progress):
@@ -307,20 +300,16 @@ def _lorenz96_cell(options, cell, progress):
     from ot_filter.experiments._common import simulate_truths
     from ot_filter import metrics
 
-    model = _lorenz96_model(cell["dim"])
+    from ot_filter.experiments.twin_configurations import twin_model
+
+    model = twin_model("lorenz96", dim=cell["dim"])
     truth_key, filter_key = jax.random.split(cell_key(options["seed"], cell["dim"], cell["block"]))
     states, observations = (np.asarray(a) for a in simulate_truths(
         truth_key, model, options["steps"], cell["simulations"]))
-    update = lorenz96_update(cell["method"])
-
-    def one(k, y):
-        result = otf.run_filter(k, model, update, y, cell["particles"], save_every=0, progress=progress)
-        return result.mean
-
-    program = ("lorenz96", cell["method"], cell["dim"], cell["particles"], cell["simulations"],
-               options["steps"], progress)
-    means, timing = _timed(program, jax.vmap(one), jax.random.split(filter_key, cell["simulations"]),
-                           observations)
+    means, timing = _timed(
+        _lorenz96_means, jax.random.split(filter_key, cell["simulations"]), model,
+        lorenz96_update(cell["method"]), observations, cell["particles"], progress,
+    )
     rmse = np.asarray(jax.vmap(metrics.rmse)(jnp.asarray(means), jnp.asarray(states)))  # [S, T]
     late = slice(options["steps"] // 2, None)  # DAPPER averages after a burn-in; here the 2nd half
     times = 0.05 * np.arange(1, options["steps"] + 1)

@@ -13,6 +13,10 @@ correction 0.5 sum_k (D K_k) K_k at X^i (the derivative of the gain FUNCTION at 
 computed by automatic differentiation of the gain's field), which turns the Stratonovich SDE into
 the Ito one an Euler-Maruyama step integrates. ``state`` carries warm starts across time steps
 (the previous fixed point, or network weights); ``info`` is a NamedTuple of per-step diagnostics.
+
+Like the Bayes updates, the built-in gains bind module-level functions (``lib.static.bind``): a
+gain is a pytree whose leaves are its numbers (epsilon, damping, tolerances, learning rate), so
+``run_fpf`` takes it as a traced argument and ``vmap`` over those numbers runs in one program.
 """
 
 from __future__ import annotations
@@ -22,10 +26,13 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ot_filter.lib.ensemble import mean_and_anomalies
+from ot_filter.lib.static import bind
+
 Array = jax.Array
 
-__all__ = ["Gain", "GainOutput", "ConstantGainInfo", "constant_gain", "function_gain", "gain_and_correction",
-           "stratonovich_correction"]
+__all__ = ["Gain", "GainOutput", "ConstantGainInfo", "constant_gain", "constant_gain_matrix",
+           "constant_gain_output", "function_gain", "gain_and_correction", "stratonovich_correction"]
 
 
 class GainOutput(NamedTuple):
@@ -59,42 +66,47 @@ def stratonovich_correction(field: Callable[[Array], Array], x: Array) -> Array:
     return gain_and_correction(field, x)[1]
 
 
-def _centred(values: Array) -> Array:
-    return values - jnp.mean(values, axis=0)
+def constant_gain_matrix(particles: Array, h_values: Array) -> Array:
+    """``K[n, m] = (1/N) sum_i (X^i - x_bar)(h(X^i) - h_hat)^T``: the constant (EnKF-like) gain."""
+    _, particle_anomalies = mean_and_anomalies(particles)
+    _, h_anomalies = mean_and_anomalies(h_values)
+    return particle_anomalies.T @ h_anomalies / particles.shape[0]
+
+
+def constant_gain_output(particles: Array, h_values: Array) -> GainOutput:
+    """The constant gain at every particle, with its zero correction (also the fallback of the
+    kernel and learned gains when theirs is unusable)."""
+    gain = constant_gain_matrix(particles, h_values)
+    return GainOutput(jnp.broadcast_to(gain, (particles.shape[0], *gain.shape)), jnp.zeros_like(particles))
+
+
+def _no_state(key, particles, h_values):
+    del key, particles, h_values
+    return ()
+
+
+def _constant_apply(key, state, particles, h_values):
+    del key
+    output = constant_gain_output(particles, h_values)
+    return output, state, ConstantGainInfo(jnp.linalg.norm(output.gain[0]))
+
+
+def _function_apply(key, state, particles, h_values, *, field):
+    del key, h_values
+    gain, correction = jax.vmap(lambda x: gain_and_correction(field, x))(particles)
+    norm = jnp.mean(jnp.sqrt(jnp.sum(gain**2, axis=(1, 2))))
+    return GainOutput(gain, correction), state, ConstantGainInfo(norm)
 
 
 def constant_gain() -> Gain:
     """The constant-gain (EnKF-like) approximation K = (1/N) sum_i (X^i - x_bar)(h(X^i) - h_hat)^T,
     the same for all particles: the best gain among gradients of linear functions phi, exact
     for a Gaussian density and linear h. Its correction is zero."""
-
-    def init(key, particles, h_values):
-        del key, particles, h_values
-        return ()
-
-    def apply(key, state, particles, h_values):
-        del key
-        gain = _centred(particles).T @ _centred(h_values) / particles.shape[0]  # [n, m]
-        output = GainOutput(
-            jnp.broadcast_to(gain, (particles.shape[0], *gain.shape)), jnp.zeros_like(particles)
-        )
-        return output, state, ConstantGainInfo(jnp.linalg.norm(gain))
-
-    return Gain(init, apply)
+    return Gain(bind(_no_state), bind(_constant_apply))
 
 
 def function_gain(field: Callable[[Array], Array]) -> Gain:
     """A gain given as a function ``x[n] -> K(x)[n, m]`` (e.g. a known exact gain); the
-    correction comes from differentiating it. For tests and for models with a known gain."""
-
-    def init(key, particles, h_values):
-        del key, particles, h_values
-        return ()
-
-    def apply(key, state, particles, h_values):
-        del key, h_values
-        gain, correction = jax.vmap(lambda x: gain_and_correction(field, x))(particles)
-        norm = jnp.mean(jnp.sqrt(jnp.sum(gain**2, axis=(1, 2))))
-        return GainOutput(gain, correction), state, ConstantGainInfo(norm)
-
-    return Gain(init, apply)
+    correction comes from differentiating it. For tests and for models with a known gain.
+    (The function is static: compared by identity.)"""
+    return Gain(bind(_no_state), bind(_function_apply, field=field))

@@ -29,13 +29,28 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ot_filter.continuous.gains.base import Gain, GainOutput, gain_and_correction
+from ot_filter.continuous.gains.base import (
+    Gain,
+    GainOutput,
+    constant_gain_output,
+    gain_and_correction,
+)
+from ot_filter.lib.fallback import use_where
+from ot_filter.lib.static import bind
+from ot_filter.lib.validation import check_int, check_number, is_traced
 
 Array = jax.Array
 
-__all__ = ["KernelGainInfo", "KernelGainState", "kernel_gain"]
+__all__ = ["KernelGainInfo", "KernelGainSettings", "KernelGainState", "kernel_gain"]
+
+
+class KernelGainSettings(NamedTuple):
+    """The kernel gain's numbers (traced: ``vmap`` over them runs in one program)."""
+
+    epsilon: Array
+    tolerance: Array
+    damping: Array
 
 
 class KernelGainState(NamedTuple):
@@ -60,7 +75,8 @@ def kernel_gain(
     block_size: int = 512,
     damping: float = 0.01,
 ) -> Gain:
-    """Builds the diffusion-map gain.
+    """Builds the diffusion-map gain (``epsilon``, ``tolerance`` and ``damping`` may be traced;
+    ``max_iterations``, ``memory_limit_bytes`` and ``block_size`` are structure).
 
     Args:
       epsilon: kernel bandwidth eps > 0, in squared state units (the bias is O(eps), the variance
@@ -80,90 +96,91 @@ def kernel_gain(
         eigenfunction of -L with eigenvalue lambda (1 % for the Gaussian, h = x case at the
         default; 0: none).
     """
-    epsilon = float(epsilon)
-    if not epsilon > 0:
-        raise ValueError(f"epsilon must be > 0, got {epsilon}")
-    tolerance = float(tolerance)
-    if not tolerance > 0:
-        raise ValueError(f"tolerance must be > 0, got {tolerance}")
-    damping = float(damping)
-    if not damping >= 0:
-        raise ValueError(f"damping must be >= 0, got {damping}")
-    for name, value in (("max_iterations", max_iterations), ("block_size", block_size)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}")
-    if not float(memory_limit_bytes) > 0:
-        raise ValueError(f"memory_limit_bytes must be > 0, got {memory_limit_bytes}")
+    settings = KernelGainSettings(
+        epsilon=check_number("epsilon", epsilon, 0.0, strict_minimum=True),
+        tolerance=check_number("tolerance", tolerance, 0.0, strict_minimum=True),
+        damping=check_number("damping", damping, 0.0),
+    )
+    memory_limit_bytes = check_number("memory_limit_bytes", memory_limit_bytes, 0.0, strict_minimum=True,
+                                      finite=False)
+    if is_traced(memory_limit_bytes):
+        raise TypeError("memory_limit_bytes is structure (checked at build time): give a number, not a traced value")
+    structure = dict(
+        max_iterations=check_int("max_iterations", max_iterations),
+        block_size=check_int("block_size", block_size),
+        memory_limit_bytes=float(memory_limit_bytes),
+    )
+    return Gain(bind(_kernel_init, **structure), bind(_kernel_apply, settings, **structure))
 
-    def check_memory(particles):
-        num = particles.shape[0]
-        needed = MATRICES_IN_MEMORY * num * num * particles.dtype.itemsize
-        if needed > memory_limit_bytes:
-            raise ValueError(
-                f"kernel_gain with N = {num} particles needs about {needed / 2**30:.1f} GiB for its "
-                f"N x N matrices, over memory_limit_bytes = {memory_limit_bytes / 2**30:.1f} GiB; "
-                f"use fewer particles, the constant or learned gain, or raise the limit"
-            )
 
-    def init(key, particles, h_values):
-        del key
-        check_memory(particles)
-        return KernelGainState(jnp.zeros_like(h_values))
-
-    def apply(key, state, particles, h_values):
-        del key
-        check_memory(particles)
-        num = particles.shape[0]
-        squared = jnp.sum(particles**2, axis=1)
-        distances = jnp.maximum(squared[:, None] + squared[None, :] - 2 * particles @ particles.T, 0.0)
-        g = jnp.exp(-distances / (4 * epsilon))
-        degree = jnp.sum(g, axis=1)  # >= 1: g_ii = 1
-        k = g / jnp.sqrt(degree[:, None] * degree[None, :])
-        row_sums = jnp.sum(k, axis=1)
-        # Phi = T Phi + eps (h - h_hat) is the linear system (D - k) Phi = eps D (h - h_hat) with
-        # the symmetric graph Laplacian D - k (D = diag of the row sums): solvable when h_hat is
-        # the mean under T's stationary weights pi ∝ D, and solved by conjugate gradients. Plain
-        # fixed-point sweeps contract at 1 - O(eps) and stall on particles the kernel barely
-        # connects (outliers, the trough between two modes); CG resolves such isolated
-        # eigenvalues in a few iterations.
-        stationary = row_sums / jnp.sum(row_sums)
-        centred_h = h_values - stationary @ h_values
-        forcing = epsilon * centred_h
-        potential, residual, iterations = _conjugate_gradients(
-            lambda v: (1.0 + damping * epsilon) * row_sums[:, None] * v - k @ v,
-            row_sums[:, None] * forcing,
-            state.potential,
-            tolerance,
-            max_iterations,
+def _check_memory(particles, memory_limit_bytes):
+    num = particles.shape[0]
+    needed = MATRICES_IN_MEMORY * num * num * particles.dtype.itemsize
+    if needed > memory_limit_bytes:
+        raise ValueError(
+            f"kernel_gain with N = {num} particles needs about {needed / 2**30:.1f} GiB for its "
+            f"N x N matrices, over memory_limit_bytes = {memory_limit_bytes / 2**30:.1f} GiB; "
+            f"use fewer particles, the constant or learned gain, or raise the limit"
         )
-        potential = potential - jnp.mean(potential, axis=0)
-        r = potential + forcing
 
-        def field(x):
-            gx = jnp.exp(-jnp.sum((particles - x) ** 2, axis=1) / (4 * epsilon))
-            kx = gx / jnp.sqrt(jnp.sum(gx) * degree)
-            tx = kx / jnp.sum(kx)
-            return ((tx[:, None] * (particles - tx @ particles)).T @ (r - tx @ r)) / (2 * epsilon)
 
-        # At the particles too the gain is this centred local covariance (the uncentred form
-        # T(X r) - (T X)(T r) loses digits to cancellation), evaluated with its derivative.
-        gain, correction = jax.lax.map(
-            lambda x: gain_and_correction(field, x), particles, batch_size=block_size
-        )
-        finite = jnp.all(jnp.isfinite(gain)) & jnp.all(jnp.isfinite(correction))
-        converged = residual <= 10 * tolerance  # CG stops at tolerance; allow float rounding
-        # A fixed point that does not converge has (near-)disconnected clusters of particles, whose
-        # Phi grows without bound and whose gain throws particles far off: use the constant gain
-        # for this step and restart the fixed point from zero.
-        usable = finite & converged
-        fallback_gain = (particles - jnp.mean(particles, axis=0)).T @ centred_h / num
-        gain = jnp.where(usable, gain, fallback_gain[None])
-        correction = jnp.where(usable, correction, 0.0)
-        potential = jnp.where(usable, potential, 0.0)
-        info = KernelGainInfo(iterations, residual, converged, ~usable)
-        return GainOutput(gain, correction), KernelGainState(potential), info
+def _kernel_init(key, particles, h_values, *, max_iterations, block_size, memory_limit_bytes):
+    del key
+    _check_memory(particles, memory_limit_bytes)
+    return KernelGainState(jnp.zeros_like(h_values))
 
-    return Gain(init, apply)
+
+def _kernel_apply(settings, key, state, particles, h_values, *, max_iterations, block_size,
+                  memory_limit_bytes):
+    del key
+    _check_memory(particles, memory_limit_bytes)
+    epsilon, tolerance, damping = settings
+    squared = jnp.sum(particles**2, axis=1)
+    distances = jnp.maximum(squared[:, None] + squared[None, :] - 2 * particles @ particles.T, 0.0)
+    g = jnp.exp(-distances / (4 * epsilon))
+    degree = jnp.sum(g, axis=1)  # >= 1: g_ii = 1
+    k = g / jnp.sqrt(degree[:, None] * degree[None, :])
+    row_sums = jnp.sum(k, axis=1)
+    # Phi = T Phi + eps (h - h_hat) is the linear system (D - k) Phi = eps D (h - h_hat) with
+    # the symmetric graph Laplacian D - k (D = diag of the row sums): solvable when h_hat is
+    # the mean under T's stationary weights pi ∝ D, and solved by conjugate gradients. Plain
+    # fixed-point sweeps contract at 1 - O(eps) and stall on particles the kernel barely
+    # connects (outliers, the trough between two modes); CG resolves such isolated
+    # eigenvalues in a few iterations.
+    stationary = row_sums / jnp.sum(row_sums)
+    centred_h = h_values - stationary @ h_values
+    forcing = epsilon * centred_h
+    potential, residual, iterations = _conjugate_gradients(
+        lambda v: (1.0 + damping * epsilon) * row_sums[:, None] * v - k @ v,
+        row_sums[:, None] * forcing,
+        state.potential,
+        tolerance,
+        max_iterations,
+    )
+    potential = potential - jnp.mean(potential, axis=0)
+    r = potential + forcing
+
+    def field(x):
+        gx = jnp.exp(-jnp.sum((particles - x) ** 2, axis=1) / (4 * epsilon))
+        kx = gx / jnp.sqrt(jnp.sum(gx) * degree)
+        tx = kx / jnp.sum(kx)
+        return ((tx[:, None] * (particles - tx @ particles)).T @ (r - tx @ r)) / (2 * epsilon)
+
+    # At the particles too the gain is this centred local covariance (the uncentred form
+    # T(X r) - (T X)(T r) loses digits to cancellation), evaluated with its derivative.
+    gain, correction = jax.lax.map(
+        lambda x: gain_and_correction(field, x), particles, batch_size=block_size
+    )
+    finite = jnp.all(jnp.isfinite(gain)) & jnp.all(jnp.isfinite(correction))
+    converged = residual <= 10 * tolerance  # CG stops at tolerance; allow float rounding
+    # A fixed point that does not converge has (near-)disconnected clusters of particles, whose
+    # Phi grows without bound and whose gain throws particles far off: use the constant gain
+    # for this step and restart the fixed point from zero.
+    usable = finite & converged
+    output = use_where(usable, GainOutput(gain, correction), constant_gain_output(particles, h_values))
+    potential = jnp.where(usable, potential, 0.0)
+    info = KernelGainInfo(iterations, residual, converged, ~usable)
+    return output, KernelGainState(potential), info
 
 
 def _conjugate_gradients(matvec, rhs, initial, tolerance, max_iterations):
