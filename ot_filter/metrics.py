@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ot_filter.lib.ensemble import weighted_covariance
-from ot_filter.lib.validation import check_broadcastable
+from ot_filter.lib.validation import check_broadcastable, check_int
 from ot_filter.lib.weights import effective_sample_size
 
 Array = jax.Array
@@ -117,8 +117,7 @@ def _as_weights(name: str, weights, num: int, dtype) -> Array:
 
 
 def _check_block_size(block_size) -> None:
-    if isinstance(block_size, bool) or not isinstance(block_size, int) or block_size < 1:
-        raise ValueError(f"block_size must be a positive int, got {block_size!r}")
+    check_int("block_size", block_size)
 
 
 def median_bandwidth(x: Array, y: Array, max_points: int = 1000) -> Array:

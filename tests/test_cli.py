@@ -2,9 +2,12 @@
 
 import json
 
+import pytest
+
 from ot_filter.cli import main
 
 
+@pytest.mark.long
 def test_demo_writes_outputs(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out)]) == 0

@@ -119,6 +119,7 @@ def test_constant_gain_fpf_matches_kalman_bucy_within_monte_carlo_error(x64):
 # --- gains ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.long
 def test_kernel_gain_approximates_the_exact_gain_gaussian_and_bimodal():
     # Gaussian N(0, 1), h = x: exact gain 1. Bimodal mixture, h = x: exact gain by quadrature.
     # Bounds: the errors measured at N = 1000, eps = 0.1 (benchmarks/fpf_gain_accuracy.py) are
@@ -184,6 +185,7 @@ def test_fpf_rejects_a_nonfinite_update_without_poisoning_the_ensemble():
     assert int(jnp.min(result.rejected_updates)) > 0  # N(0, 1) particles: ~16 % above 1
 
 
+@pytest.mark.long
 def test_learned_gain_recovers_the_exact_gains_and_falls_back_on_divergence():
     # N(0, 1): h = x has gain 1, h = x^2 has gain K(x) = x (the bimodal example's first step).
     # Measured RMS errors over |x| < 2 at N = 1000 (4 seeds, 600 and 1500 iterations, jitter 0.1
@@ -207,6 +209,7 @@ def test_learned_gain_recovers_the_exact_gains_and_falls_back_on_divergence():
 # --- the FPF -------------------------------------------------------------------------------------
 
 
+@pytest.mark.long
 def test_fpf_is_vmappable_and_skips_missing_increments():
     model = ct.ornstein_uhlenbeck(diffusion_std=0.0, rate=0.0)
     increments = jnp.full((6, 1), jnp.nan)
@@ -220,6 +223,7 @@ def test_fpf_is_vmappable_and_skips_missing_increments():
     np.testing.assert_allclose(batch[1], single, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.long
 def test_kernel_and_learned_gains_split_the_bimodal_posterior_the_constant_gain_cannot():
     from ot_filter.experiments.continuous_time import run_bimodal_example
 

@@ -17,6 +17,7 @@ def setup():
 
 
 @pytest.mark.parametrize("update", [otf.sir(), otf.enkf()], ids=["sir", "enkf"])
+@pytest.mark.long
 def test_save_every_changes_storage_not_results(setup, update):
     model, _, observations = setup
     full = otf.run_filter(jax.random.key(0), model, update, observations, 32, save_every=1)
@@ -33,6 +34,7 @@ def test_save_every_changes_storage_not_results(setup, update):
         np.testing.assert_allclose(result.final_particles, full.particles[-1], rtol=1e-6)
 
 
+@pytest.mark.long
 def test_jit_and_no_jit_agree(setup):
     model, _, observations = setup
     update = otf.sir(resampling="stratified", ess_threshold=0.5, jitter=0.3)
@@ -43,6 +45,7 @@ def test_jit_and_no_jit_agree(setup):
     np.testing.assert_array_equal(eager.info.resampled, jitted.info.resampled)
 
 
+@pytest.mark.long
 def test_vmap_over_keys_and_observations_matches_single_runs(setup):
     model, _, _ = setup
     keys = jax.random.split(jax.random.key(2), 3)

@@ -70,6 +70,7 @@ def test_mmd_rejects_bad_input():
     assert np.isfinite(jax.jit(lambda h: metrics.mmd(x, x + 1.0, bandwidth=h))(1.0))
 
 
+@pytest.mark.long
 def test_mmd_large_samples_in_bounded_memory():
     """10^5 x 10^4 samples: blocks of 1024^2 kernel values, never a 10^5 x 10^5 matrix."""
     x = jax.random.normal(jax.random.key(0), (100_000, 2))
@@ -104,7 +105,7 @@ def test_crps_matches_gaussian_closed_form():
 
 class TestSimpleMetrics(chex.TestCase):
     """Closed forms of the plain (not internally jitted) metrics, called eagerly and inside
-    jax.jit: chex runs the test once per variant (test_simple_metrics_with_jit / _without_jit)."""
+    jax.jit: chex runs the test once per variant (test_simple_metrics__with_jit, __without_jit)."""
 
     @chex.variants(with_jit=True, without_jit=True)
     def test_simple_metrics(self):
@@ -127,6 +128,7 @@ class TestSimpleMetrics(chex.TestCase):
         np.testing.assert_allclose(spread(particles, log_weights), np.sqrt(variance.mean()), rtol=1e-5)
 
 
+@pytest.mark.long
 def test_median_bandwidth_ignores_duplicates():
     resampled = jnp.repeat(jnp.array([[0.0], [1.0], [3.0]]), jnp.array([40, 2, 2]), axis=0)
     bandwidth = float(metrics.median_bandwidth(resampled, resampled))

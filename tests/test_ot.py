@@ -45,6 +45,7 @@ def test_c_concavity_check_is_exact_for_quadratic_potentials():
         np.testing.assert_allclose(values, expected, rtol=1e-4)
 
 
+@pytest.mark.long
 def test_transport_reproduces_apply_and_is_conditional():
     update = otf.ot(num_iterations=300)
     particles = prior_particles()
@@ -62,6 +63,7 @@ def test_transport_reproduces_apply_and_is_conditional():
     assert int(state.num_updates) == 1
 
 
+@pytest.mark.long
 def test_enkf_layer_untrained_map_is_the_perturbed_enkf_update():
     # T's last layer starts at zero, so before training T(x, y) = x_e = x + K (y - Y^i): the
     # perturbed-observation EnKF with the gain of all particles.
@@ -78,6 +80,7 @@ def test_enkf_layer_untrained_map_is_the_perturbed_enkf_update():
 
 
 @pytest.mark.parametrize("learning_rate", [1e3, 1e30])
+@pytest.mark.long
 def test_divergence_is_detected_and_falls_back_to_enkf(learning_rate):
     # A wildly large f step makes J explode (1e3) or overflow to NaN (1e30).
     update = otf.ot(num_iterations=50, potential_optimizer=optax.sgd(learning_rate))
@@ -98,6 +101,7 @@ def test_divergence_is_detected_and_falls_back_to_enkf(learning_rate):
     assert not bool(healthy.diverged)
 
 
+@pytest.mark.long
 def test_jit_matches_eager_and_does_not_retrace():
     # Small on purpose: the eager run dispatches every operation (3 iterations x 2 inner steps
     # with 4 concavity points took 17 s eagerly; this one 2 s).
@@ -119,6 +123,7 @@ def test_jit_matches_eager_and_does_not_retrace():
     np.testing.assert_allclose(a, b, atol=1e-4)
 
 
+@pytest.mark.long
 def test_vmap_over_seeds_matches_single_runs():
     update = otf.ot(num_iterations=20, concavity_points=0)
     particles = prior_particles(num=100)
@@ -135,6 +140,7 @@ def test_vmap_over_seeds_matches_single_runs():
         np.testing.assert_allclose(batched[k], single(keys[k]), atol=1e-4)
 
 
+@pytest.mark.long
 def test_warm_start_continues_training():
     update = otf.ot(num_iterations=40, concavity_points=0)
     particles = prior_particles()
@@ -150,6 +156,7 @@ def test_warm_start_continues_training():
     assert int(cold_state.training.transport_opt_state[0].count) == 400
 
 
+@pytest.mark.long
 def test_run_filter_with_ot_update():
     model = otf.models.squared_observation(dim=2)
     _, observations = otf.simulate(jax.random.key(0), model, 4)
@@ -185,6 +192,7 @@ def test_bad_configuration_and_input_raise_clear_errors():
         update.transport(state, particles[:5], jnp.ones(2))
 
 
+@pytest.mark.long
 def test_gaussian_prior_linear_observation_matches_the_exact_posterior():
     # 1-D: X ~ N(1, 4), Y = X + N(0, 1), y = 2. The posterior given the particles' own moments
     # (m, v) is N(v' (m / v + y), v'), v' = 1 / (1 / v + 1). The map is also asked for y = -1
@@ -207,6 +215,7 @@ def test_gaussian_prior_linear_observation_matches_the_exact_posterior():
         assert VAR_RANGE[0] < ratio < VAR_RANGE[1], (y, ratio)
 
 
+@pytest.mark.long
 def test_static_example_both_modes_and_better_than_enkf_and_sir():
     # The chapter's example at lambda_w = 0.04, N = 500, default settings, one seed: the posterior
     # of each coordinate has modes at +-sqrt(2) of equal mass.
@@ -221,6 +230,7 @@ def test_static_example_both_modes_and_better_than_enkf_and_sir():
     assert ot_result["diverged_seeds"] == 0 and ot_result["all_finite"]
 
 
+@pytest.mark.long
 def test_apply_outside_jit_compiles_once():
     traces = []
 
@@ -238,6 +248,7 @@ def test_apply_outside_jit_compiles_once():
     assert first > 0 and len(traces) == first
 
 
+@pytest.mark.long
 def test_float64_particles_give_float64_posterior(x64):
     update = otf.ot(num_iterations=20, concavity_points=8)
     particles = jax.random.normal(jax.random.key(0), (64, 2), dtype=jnp.float64)
@@ -248,6 +259,7 @@ def test_float64_particles_give_float64_posterior(x64):
     np.testing.assert_allclose(moved, posterior, atol=1e-10)
 
 
+@pytest.mark.long
 def test_apply_checks_its_input_and_ignores_a_missing_observation():
     update = otf.ot(num_iterations=5, concavity_points=0)
     particles = prior_particles(num=32)
@@ -277,6 +289,7 @@ def test_smoothed_prior_keeps_mean_and_correlated_covariance():
     np.testing.assert_allclose(np.asarray(draws).mean(0), 0.0, atol=0.016)
 
 
+@pytest.mark.long
 def test_enkf_layer_and_unsmoothed_training_on_a_gaussian_problem():
     # With the EnKF layer the linear-Gaussian update is exact before training; training must end
     # near it again (measured: it drifts away first, 0.3 sd off in the mean after 1,000
@@ -298,6 +311,7 @@ def test_enkf_layer_and_unsmoothed_training_on_a_gaussian_problem():
         assert abs(error) < MEAN_TOL and VAR_RANGE[0] < ratio < VAR_RANGE[1], (error, ratio)
 
 
+@pytest.mark.long
 def test_any_optax_transformation_with_a_schedule_is_accepted():
     # The authors' exponential learning-rate decay (0.999 per step) on both networks.
     decayed = otf.ot(
@@ -315,6 +329,7 @@ def test_any_optax_transformation_with_a_schedule_is_accepted():
     assert not np.allclose(a, b)
 
 
+@pytest.mark.long
 def test_halving_iteration_schedule_in_a_filter():
     # The authors' schedule: first at the first update, halved each update, down to the floor.
     model = otf.models.squared_observation(dim=2)

@@ -60,6 +60,7 @@ def assert_consistent(estimates, exact, scale_bound=None):
     [otf.enkf(), otf.enkf(perturbed=False)],
     ids=["perturbed", "square_root"],
 )
+@pytest.mark.long
 def test_enkf_matches_kalman(problem, update):
     model, observations, exact = problem
     means, covs, _ = replicate(model, update, observations)
@@ -68,6 +69,7 @@ def test_enkf_matches_kalman(problem, update):
     assert_consistent(covs, exact.cov)
 
 
+@pytest.mark.long
 def test_simulation_based_enkf_matches_kalman(problem):
     """Without h and R the gain Cov(X, Y) Cov(Y)^-1 comes from simulated pairs only."""
     model, observations, exact = problem
@@ -78,7 +80,8 @@ def test_simulation_based_enkf_matches_kalman(problem):
     assert_consistent(covs, exact.cov)
 
 
-@pytest.mark.parametrize("resampling", ["systematic", "multinomial", "stratified", "residual"])
+@pytest.mark.parametrize("resampling", ["systematic", *(pytest.param(s, marks=pytest.mark.long)
+                                                      for s in ("multinomial", "stratified", "residual"))])
 def test_sir_matches_kalman_with_marginal_likelihood(problem, resampling):
     model, observations, exact = problem
     means, covs, info = replicate(model, otf.sir(resampling=resampling), observations)

@@ -44,6 +44,7 @@ def _interrupt_after(out, cells, sig):
     return process.returncode, error
 
 
+@pytest.mark.long
 def test_interrupted_sweep_resumes_and_reproduces_the_uninterrupted_metrics(tmp_path):
     whole = str(tmp_path / "whole")
     process = _cli(*SWEEP, "--out", whole)
@@ -123,6 +124,7 @@ def test_list_names_every_experiment():
         assert name in output
 
 
+@pytest.mark.long
 def test_in_scan_progress_reports_and_is_absent_when_off():
     model = otf.models.lorenz63()
     _, observations = otf.simulate(jax.random.key(0), model, 100)

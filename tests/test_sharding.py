@@ -61,6 +61,7 @@ CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.long
 def test_sharded_particles_agree_with_one_device():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
     child = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True, timeout=600)

@@ -37,6 +37,7 @@ def _sweep_matches_separate_runs(model, observations, build, values, num_particl
 
 
 @pytest.mark.parametrize("perturbed", [True, False])
+@pytest.mark.long
 def test_enkf_inflation_sweep_is_one_program_matching_separate_runs(lorenz63_data, perturbed):
     model, observations = lorenz63_data
     _sweep_matches_separate_runs(
@@ -45,6 +46,7 @@ def test_enkf_inflation_sweep_is_one_program_matching_separate_runs(lorenz63_dat
     )
 
 
+@pytest.mark.long
 def test_sir_jitter_sweep_matches_separate_runs(lorenz63_data):
     model, observations = lorenz63_data
     _sweep_matches_separate_runs(
@@ -52,6 +54,7 @@ def test_sir_jitter_sweep_matches_separate_runs(lorenz63_data):
     )
 
 
+@pytest.mark.long
 def test_ot_learning_rate_sweep_matches_separate_runs():
     model = otf.models.squared_observation(dim=1, noise=0.4, observation_scale=0.5, static=True)
     observations = jnp.ones((1, 1))
@@ -68,6 +71,7 @@ def test_ot_learning_rate_sweep_matches_separate_runs():
     assert not np.allclose(separate[0], separate[-1])
 
 
+@pytest.mark.long
 def test_kernel_gain_epsilon_sweep_matches_separate_runs():
     model = ct.ornstein_uhlenbeck()
     dt = 0.01
@@ -83,6 +87,7 @@ def test_kernel_gain_epsilon_sweep_matches_separate_runs():
     np.testing.assert_allclose(swept, separate, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.long
 def test_new_numbers_and_rebuilt_objects_do_not_recompile(lorenz63_data):
     _, observations = lorenz63_data
     key = jax.random.key(0)

@@ -66,6 +66,7 @@ def test_perturbed_enkf_mean_is_exact_with_centred_perturbations(x64):
     np.testing.assert_allclose(sample_moments(posterior)[0], expected_mean, atol=1e-10)
 
 
+@pytest.mark.long
 def test_rotation_and_inflation(x64):
     model, particles, y, _ = one_step_problem()
     plain = otf.enkf(perturbed=False)
@@ -100,6 +101,7 @@ def test_simulation_based_gain_with_singular_observation_covariance():
     np.testing.assert_allclose(posterior, 0.5, atol=1e-2)  # noiseless: collapses on y
 
 
+@pytest.mark.long
 def test_sir_degenerate_weights_never_nan():
     model, particles, y, _ = one_step_problem()
     for bad in (-jnp.inf, jnp.nan):
@@ -117,7 +119,7 @@ def test_sir_degenerate_weights_never_nan():
 
 
 class TestSirCarriesWeights(chex.TestCase):
-    """The SIR update called eagerly and inside jax.jit (chex variants: _with_jit, _without_jit)."""
+    """The SIR update called eagerly and inside jax.jit (chex variants: __with_jit, __without_jit)."""
 
     @chex.variants(with_jit=True, without_jit=True)
     def test_sir_carries_weights_below_threshold(self):
@@ -133,6 +135,7 @@ class TestSirCarriesWeights(chex.TestCase):
         np.testing.assert_allclose(info.ess, otf.metrics.ess(expected), rtol=1e-5)
 
 
+@pytest.mark.long
 def test_sir_jitter_adds_the_documented_covariance():
     """Flat likelihood: resampling keeps Cov = C; jitter adds (jitter * N^(-1/(n+4)))^2 C."""
     num = 200_000
@@ -170,6 +173,7 @@ def test_updates_reject_models_they_cannot_handle():
         otf.enkf(rotate=True).apply(jax.random.key(0), None, big, y, model)
 
 
+@pytest.mark.long
 def test_random_rotation_is_haar_on_the_complement_of_ones(x64):
     """O = rotation(C) + 11^T/N for the centring matrix C. Checks O O^T = I and O 1 = 1, and for
     the block Q acting on the complement (in the basis of the Householder reflection P): the
@@ -207,6 +211,7 @@ def test_square_root_enkf_exact_in_both_gram_branches(x64, num_particles):
     assert_square_root_is_kalman_update(model, particles, y, H, R)
 
 
+@pytest.mark.long
 def test_simulation_based_gain_with_fewer_particles_than_observations():
     """N = 12 <= m = 40: Cov(Y) is singular; the pseudo-inverse update matches float64 NumPy."""
     rng = np.random.default_rng(0)

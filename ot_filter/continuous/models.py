@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ot_filter.continuous.sde import SDEModel
+from ot_filter.lib.validation import check_int
 from ot_filter.models._gaussian_observation import check_nonnegative, check_positive
 from ot_filter.models.lorenz import lorenz63_vector_field
 
@@ -58,9 +59,7 @@ def ornstein_uhlenbeck(
 
     ``observation_matrix`` H defaults to the identity (every component observed).
     """
-    if isinstance(state_dim, bool) or not isinstance(state_dim, int) or state_dim < 1:
-        raise ValueError(f"state_dim must be a positive int, got {state_dim!r}")
-    n = state_dim
+    n = check_int("state_dim", state_dim)
     rate = float(rate)
     diffusion_std = check_nonnegative("diffusion_std", diffusion_std)
     sigma = check_positive("observation_noise_std", observation_noise_std)
@@ -98,9 +97,7 @@ def squared_observation_sde(
     initial_std: float = 1.0,
 ) -> SDEModel:
     """dX = diffusion_std dB (static by default), dY = X (.) X dt + sigma dW, X_0 ~ N(mu, s^2 I)."""
-    if isinstance(state_dim, bool) or not isinstance(state_dim, int) or state_dim < 1:
-        raise ValueError(f"state_dim must be a positive int, got {state_dim!r}")
-    n = state_dim
+    n = check_int("state_dim", state_dim)
     diffusion_std = check_nonnegative("diffusion_std", diffusion_std)
     sigma = check_positive("observation_noise_std", observation_noise_std)
     initial_std = check_positive("initial_std", initial_std)

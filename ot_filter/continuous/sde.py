@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ot_filter.lib.validation import check_int
 from ot_filter.model import StateSpaceModel
 
 Array = jax.Array
@@ -155,11 +156,9 @@ def simulate_sde(
       ``SDEPath(times[T + 1], states[T + 1, n], increments[T, m])``.
     """
     check_time_step(dt)
-    for name, value in (("num_steps", num_steps), ("substeps", substeps)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    num_steps, substeps = check_int("num_steps", num_steps), check_int("substeps", substeps)
     sde_dimensions(model)
-    return _simulate_sde(key, model, dt, int(num_steps), int(substeps))
+    return _simulate_sde(key, model, dt, num_steps, substeps)
 
 
 @partial(jax.jit, static_argnums=(3, 4))

@@ -52,12 +52,13 @@ def cell_key(seed: int, *coordinates: int) -> jax.Array:
     return key
 
 
-def _timed(function, *args):
-    """(output as NumPy, {"compile_s", "run_s"}) for a ``jax.jit``-ted ``function``. Compiled
+def _timed(function, *args, **static):
+    """(output as NumPy, {"compile_s", "run_s"}) for a ``jax.jit``-ted ``function`` of traced
+    ``args`` and static keyword arguments ``static``. Compiled
     programs are JAX's own cache: models and updates are pytrees whose numbers are traced, so the
     cells of a sweep that differ only in numbers (or rebuilt objects) reuse one program."""
     start = time.perf_counter()
-    compiled = function.lower(*args).compile()
+    compiled = function.lower(*args, **static).compile()
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
     output = jax.block_until_ready(compiled(*args))
@@ -308,7 +309,8 @@ def _lorenz96_cell(options, cell, progress):
         truth_key, model, options["steps"], cell["simulations"]))
     means, timing = _timed(
         _lorenz96_means, jax.random.split(filter_key, cell["simulations"]), model,
-        lorenz96_update(cell["method"]), observations, cell["particles"], progress,
+        lorenz96_update(cell["method"]), observations,
+        num_particles=cell["particles"], progress=progress,
     )
     rmse = np.asarray(jax.vmap(metrics.rmse)(jnp.asarray(means), jnp.asarray(states)))  # [S, T]
     late = slice(options["steps"] // 2, None)  # DAPPER averages after a burn-in; here the 2nd half

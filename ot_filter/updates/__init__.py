@@ -7,19 +7,23 @@ from ot_filter.updates.base import (
     count_active,
     uniform_log_weights,
 )
-from ot_filter.updates.enkf import EnKFInfo, enkf
-from ot_filter.updates.ot import OTInfo, OTState, OTUpdate, ot
+from ot_filter.updates.enkf import EnKFInfo, EnKFSettings, enkf
+from ot_filter.updates.ot import OTInfo, OTSettings, OTState, OTStructure, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
-from ot_filter.updates.sir import SIRInfo, SIRState, sir
+from ot_filter.updates.sir import SIRInfo, SIRSettings, SIRState, sir
 
 __all__ = [
     "BayesUpdate",
     "EnKFInfo",
+    "EnKFSettings",
     "OTInfo",
+    "OTSettings",
     "OTState",
+    "OTStructure",
     "OTUpdate",
     "RESAMPLING_SCHEMES",
     "SIRInfo",
+    "SIRSettings",
     "SIRState",
     "UniformWeightsState",
     "active_mask",

@@ -1,0 +1,81 @@
+"""The OT update's small functions (transport/standardisation, batches, divergence and the
+budget schedule) against direct NumPy computations."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ot_filter.lib.weights import active_mask, uniform_log_weights
+from ot_filter.transport import batches, divergence, standardisation
+from ot_filter.updates.ot import iteration_budget
+
+
+def _ensemble(seed=0, num=9, n=2):
+    return np.random.default_rng(seed).normal(size=(num, n)) * [1.0, 3.0] + [0.5, -2.0]
+
+
+def test_standardisation_uses_active_rows_and_keeps_constant_coordinates():
+    x = _ensemble()
+    y = np.concatenate([x[:, :1] ** 2, np.full((9, 1), 4.0)], axis=1)  # second y coordinate constant
+    active = np.arange(9) < 6
+    scaling = standardisation.standardisation(jnp.asarray(x), jnp.asarray(y), jnp.asarray(active))
+    np.testing.assert_allclose(scaling.x_mean, x[:6].mean(0), atol=1e-6)
+    np.testing.assert_allclose(scaling.x_scale, x[:6].std(0), rtol=1e-5)
+    np.testing.assert_allclose(scaling.y_scale, [y[:6, 0].std(), 1.0], rtol=1e-5)
+    np.testing.assert_allclose(scaling.restore_x(scaling.standardise_x(jnp.asarray(x))), x, atol=1e-5)
+
+
+def test_smoothed_prior_keeps_mean_and_covariance():
+    x = jnp.asarray(np.random.default_rng(1).normal(size=(20000, 2)) @ np.array([[1.0, 0.8], [0.0, 0.6]]))
+    x = (x - x.mean(0)) / x.std(0)
+    factor = standardisation.correlation_cholesky(x)
+    draws = standardisation.smoothed_draw(jax.random.key(0), x, 0.6, factor)
+    # Monte-Carlo error of a correlation of 20,000 draws: about 1 / sqrt(20000) = 0.007
+    np.testing.assert_allclose(np.cov(np.asarray(draws).T), np.cov(np.asarray(x).T), atol=0.03)
+    h = standardisation.smoothing_bandwidth(1.0, 1000, 2, jnp.float32)
+    np.testing.assert_allclose(h, (4 / 4) ** (1 / 6) * 1000 ** (-1 / 6), rtol=1e-6)
+    assert float(standardisation.smoothing_bandwidth(100.0, 10, 2, jnp.float32)) == np.float32(standardisation.MAX_SMOOTHING_BANDWIDTH)
+
+
+def test_batches_draw_active_particles_only():
+    x = jnp.asarray(_ensemble(num=10))
+    log_weights = uniform_log_weights(x, 4)
+    active = active_mask(log_weights)
+    scaling = standardisation.standardisation(x, x, active)
+    data = batches.TrainingData(
+        scaling.standardise_x(x), scaling.standardise_y(x), jnp.argsort(~active, stable=True),
+        jnp.sum(active), jnp.asarray(0.5), None, scaling,
+    )
+    batch = batches.sample_batch(jax.random.key(0), data, lambda key, x: x, batch_size=500,
+                                 smoothing=False, fresh_observations=False, enkf_layer=False)
+    allowed = np.asarray(data.xs[:4])
+    for rows in (batch.x, batch.xbar):
+        assert all(np.any(np.all(np.isclose(row, allowed), axis=1)) for row in np.asarray(rows))
+        assert len({tuple(row) for row in np.asarray(rows).round(5)}) == 4  # all four are drawn
+    np.testing.assert_allclose(batch.y, batch.x, atol=1e-6)  # y = x pairs kept together
+
+
+def test_predictive_z_and_each_divergence_condition():
+    x = jnp.asarray(_ensemble(num=50))
+    active = jnp.ones(50, bool)
+    y = jnp.asarray([1.0, 0.0])
+    z = divergence.predictive_z(jax.random.key(0), lambda key, x: x, x, y, active)
+    expected = np.max(np.abs(np.asarray(y) - np.asarray(x).mean(0)) / np.asarray(x).std(0))
+    np.testing.assert_allclose(z, expected, rtol=1e-5)
+    moved = (x - x.mean(0)) / x.std(0) * 0.5
+    healthy = dict(trace_finite=jnp.array(True), smoothed_loss=jnp.asarray(1.0), threshold=10.0, n=2,
+                   moved_standard=moved, active=active, z=jnp.asarray(2.0))
+    assert not bool(divergence.diverged(**healthy))
+    for change in (dict(trace_finite=jnp.array(False)), dict(smoothed_loss=jnp.asarray(25.0)),
+                   dict(moved_standard=moved.at[3, 1].set(jnp.nan)), dict(moved_standard=moved * 30),
+                   dict(z=jnp.asarray(11.0))):
+        assert bool(divergence.diverged(**{**healthy, **change})), change
+    # non-finite padding rows do not count
+    assert not bool(divergence.diverged(**{**healthy, "moved_standard": moved.at[3].set(jnp.inf),
+                                          "active": active.at[3].set(False)}))
+
+
+def test_iteration_budget_halves_down_to_the_floor():
+    budgets = [int(iteration_budget(jnp.asarray(k), 1024, 64)) for k in range(7)]
+    assert budgets == [1024, 512, 256, 128, 64, 64, 64]
+    assert int(iteration_budget(jnp.asarray(100), 1024, 64)) == 64
