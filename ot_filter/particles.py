@@ -10,7 +10,7 @@ with ``check_filter_arguments`` and draw and save particles through the same fun
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp

@@ -297,10 +297,8 @@ def _lorenz96_means(keys, model, update, observations, num_particles, progress):
 
 
 def _lorenz96_cell(options, cell, progress):
-    import ot_filter as otf
-    from ot_filter.experiments._common import simulate_truths
     from ot_filter import metrics
-
+    from ot_filter.experiments._common import simulate_truths
     from ot_filter.experiments.twin_configurations import twin_model
 
     model = twin_model("lorenz96", dim=cell["dim"])

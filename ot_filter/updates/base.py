@@ -49,12 +49,23 @@ from typing import Any, Callable, NamedTuple
 import jax
 
 from ot_filter.lib.static import bind
-from ot_filter.lib.weights import (  # noqa: F401 - the contract's helpers, re-exported
+from ot_filter.lib.weights import (
     active_mask,
     count_active,
     count_dependent,
     uniform_log_weights,
 )
+
+__all__ = [  # the contract's helpers are re-exported from lib.weights
+    "BayesUpdate",
+    "UniformWeightsState",
+    "active_mask",
+    "count_active",
+    "count_dependent",
+    "init_uniform_weights",
+    "uniform_log_weights",
+    "uniform_weights_init",
+]
 
 Array = jax.Array
 

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ot_filter.sharding import replicated
-from ot_filter.updates.base import count_dependent
+from ot_filter.lib.weights import count_dependent
 
 Array = jax.Array
 
