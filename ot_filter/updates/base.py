@@ -8,7 +8,9 @@
 particles. Every state is a NamedTuple with a ``log_weights[N]`` field, normalised
 (logsumexp = 0): the posterior is the weighted empirical measure
 ``sum_i exp(log_weights_i) delta_{X^i}`` (uniform except for SIR between resampling steps).
-``info`` holds per-step diagnostics; ``run_filter`` stacks them. ``init`` is given the model
+``run_filter`` checks that contract when it traces ``init`` (a TypeError names it otherwise) and
+carries the particles with those log-weights as one ``particles.ParticleState``. ``info`` holds
+per-step diagnostics; ``run_filter`` stacks them. ``init`` is given the model
 because some states depend on it (the OT update's networks need the observation dimension); SIR
 and EnKF ignore it. An update may offer more than ``init``/``apply`` (``ot()`` returns an
 ``OTUpdate`` that also exposes its trained map); ``run_filter`` accepts any NamedTuple with these
