@@ -68,14 +68,12 @@ Output: one JSON object on stdout ``{config: {"seconds": [...], "compile_s": ...
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import platform
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import jax
 
@@ -91,16 +89,9 @@ from cuthbert.smc import particle_filter  # noqa: E402
 from cuthbertlib.resampling import ess_decorator, systematic  # noqa: E402
 
 
-def load_twin_configurations():
-    """``ot_filter/experiments/twin_configurations.py``, loaded by file path (not as part of
-    the ot_filter package, which this interpreter need not have)."""
-    path = Path(__file__).resolve().parents[1] / "ot_filter" / "experiments" / "twin_configurations.py"
-    spec = importlib.util.spec_from_file_location("_twin_configurations", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
+
+from twin_configurations_by_path import load_twin_configurations  # noqa: E402
 
 _TWIN = load_twin_configurations()
 PARTICLE_FILTER = _TWIN.TWIN_CONFIGURATIONS["L63/PartFilt-N800"]  # N 800, jitter 0.9, ESS 0.2

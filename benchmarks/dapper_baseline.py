@@ -40,12 +40,10 @@ from __future__ import annotations
 import argparse
 import ast
 import contextlib
-import importlib.util
 import json
 import os
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -72,15 +70,6 @@ MODELS = {"L63": HMM_L63, "L96": HMM_L96}
 MODEL_KEYS = {"lorenz63": "L63", "lorenz96": "L96"}
 
 
-def load_twin_configurations():
-    """``ot_filter/experiments/twin_configurations.py``, loaded by file path (not as part of
-    the ot_filter package, which this interpreter need not have)."""
-    path = Path(__file__).resolve().parents[1] / "ot_filter" / "experiments" / "twin_configurations.py"
-    spec = importlib.util.spec_from_file_location("_twin_configurations", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def dapper_method(call: str):
@@ -93,6 +82,8 @@ def dapper_method(call: str):
     kwargs = {keyword.arg: ast.literal_eval(keyword.value) for keyword in node.keywords}
     return getattr(da, node.func.id)(*args, **kwargs)
 
+
+from twin_configurations_by_path import load_twin_configurations  # noqa: E402
 
 CONFIGS = {  # name -> (model, method builder): the configurations DAPPER publishes an rmse.a for
     c.name: (MODEL_KEYS[c.model_name], lambda call=c.dapper_method: dapper_method(call))
