@@ -1,12 +1,14 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``ot``); ``run_filter`` composes them into a
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``ot``); ``localisation``
+describes where the state and observations lie (``ring``, ``points``) and builds the taper; ``run_filter`` composes them into a
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference. ``continuous`` holds the continuous-time part
 (``SDEModel``, Kalman-Bucy, the feedback particle filter and its gains).
 """
 
 from ot_filter import continuous, metrics, models, reference
+from ot_filter.localisation import Geometry, Localisation, localisation, points, ring
 from ot_filter.continuous import SDEModel
 from ot_filter.filtering import FilterResult, run_filter
 from ot_filter.kalman import KalmanResult, kalman_filter
@@ -15,12 +17,14 @@ from ot_filter.sharding import particle_sharding
 from ot_filter.updates import (
     BayesUpdate,
     EnKFInfo,
+    LETKFInfo,
     OTInfo,
     OTState,
     OTUpdate,
     SIRInfo,
     SIRState,
     enkf,
+    letkf,
     ot,
     resample_indices,
     sir,
@@ -32,7 +36,10 @@ __all__ = [
     "BayesUpdate",
     "EnKFInfo",
     "FilterResult",
+    "Geometry",
     "KalmanResult",
+    "LETKFInfo",
+    "Localisation",
     "OTInfo",
     "OTState",
     "OTUpdate",
@@ -43,12 +50,16 @@ __all__ = [
     "continuous",
     "enkf",
     "kalman_filter",
+    "letkf",
+    "localisation",
     "metrics",
     "models",
     "ot",
     "particle_sharding",
+    "points",
     "reference",
     "resample_indices",
+    "ring",
     "run_filter",
     "simulate",
     "sir",

@@ -10,8 +10,11 @@ stacked per-step ``info`` of the update, and the particles at every k-th step or
 memory stays bounded for long runs with many particles. The whole filter is one jit-compiled
 program; it can itself be jitted and vmapped over keys and observation sequences.
 
-Missing observations: a time step whose observation contains NaN is skipped (the update is the
-identity, ``observed[t]`` is False and that step's ``info`` is zeros); propagation goes on.
+Missing observations: NaN components of y_t are missing and the update assimilates the others
+(the same result as deleting those rows of the observation model: ``updates.base``); the set of
+observed components may change at every step without recompiling (it is a mask). A time step
+with every component NaN is skipped (the update is the identity, ``observed[t]`` is False and
+that step's ``info`` is zeros); propagation goes on.
 
 Padded particle axis: ``num_active = k`` runs the filter with k particles inside arrays of
 ``num_particles = N_max`` (the contract in ``updates.base``: after ``update.init`` the
@@ -59,7 +62,7 @@ class FilterResult(NamedTuple):
       spread: ``[T]`` ensemble spread (``metrics.spread``: sqrt of the mean over components of the
         unbiased weighted variance, as DAPPER's; padding has weight 0).
       info: the update's per-step diagnostics, each leaf with a leading axis T.
-      observed: ``[T]`` bool, False where the observation had NaN and the update was skipped.
+      observed: ``[T]`` bool, False where every component was NaN and the update was skipped.
       particles: ``[S, N, n]`` particles after the updates at ``saved_steps`` (None if S = 0).
       log_weights: ``[S, N]`` their normalised log-weights (None if S = 0).
       saved_steps: ``[S]`` NumPy int array, the time indices (0-based) of the saved particles.
@@ -99,7 +102,8 @@ def run_filter(
       update: a ``BayesUpdate`` (``ot_filter.sir(...)``, ``ot_filter.enkf(...)``, ``ot_filter.ot(...)``);
         a traced argument: its numeric settings may be traced (``jax.vmap`` over
         ``enkf(inflation=a)`` runs in one program; a new value does not recompile).
-      observations: ``[T, m]`` observations y_1..y_T (rows with NaN are treated as missing).
+      observations: ``[T, m]`` observations y_1..y_T (NaN components are missing; a row of NaN
+        skips that step's update).
       num_particles: N >= 2 (static).
       save_every: keep the particles of every k-th step (steps k-1, 2k-1, ...); 1 keeps all,
         0 keeps none, as does any k > T (static).
@@ -213,8 +217,9 @@ def _filter_body(
 
         if not update_first:
             particles = propagate(particles)
-        observed = jnp.all(jnp.isfinite(observation))
-        safe_observation = jnp.where(observed, observation, jnp.zeros_like(observation))
+        # NaN components are missing: the update assimilates the others (the contract in
+        # updates.base); a step with nothing observed is skipped.
+        observed = jnp.any(jnp.isfinite(observation))
 
         def skip(update_key, state, particles, observation):
             info_shape = jax.eval_shape(update.apply, update_key, state, particles, observation, model)[2]
@@ -225,7 +230,7 @@ def _filter_body(
             observed,
             lambda *args: update.apply(*args, model),
             skip,
-            update_key, state, particles, safe_observation,
+            update_key, state, particles, observation,
         )
         if update_first:
             particles = propagate(particles)

@@ -5,8 +5,10 @@ Update:   S = H P- H^T + R,    K = P- H^T S^{-1},    m = m- + K (y - H m-),
           P = (I - K H) P- (I - K H)^T + K R K^T        (Joseph form: stays symmetric PSD)
 Marginal: log p(y_t | y_{1:t-1}) = log N(y_t; H m-, S),  summed into ``log_likelihood``.
 
-S^{-1} is applied through its Cholesky factor, never formed. Observations with NaN are treated as
-missing (no update, no likelihood term), like ``run_filter``.
+S^{-1} is applied through its Cholesky factor, never formed. NaN components of y are missing: the
+update and the likelihood term are those of the model with those rows of H and R deleted (exact,
+``lib.gaussian.restrict_to_observed``), and a step with nothing observed is a prediction, like
+``run_filter``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ot_filter.lib.gaussian import cholesky_gain, gaussian_log_density
+from ot_filter.lib.gaussian import cholesky_gain, gaussian_log_density, restrict_to_observed
 from ot_filter.lib.linalg import symmetrise
 from ot_filter.model import StateSpaceModel
 from ot_filter.models.linear_gaussian import LinearGaussianParameters
@@ -56,18 +58,18 @@ def _kalman_filter(parameters: LinearGaussianParameters, observations: Array) ->
         mean, cov = carry
         mean = A @ mean
         cov = symmetrise(A @ cov @ A.T + Q)
-        observed = jnp.all(jnp.isfinite(y))
-        y = jnp.where(observed, y, H @ mean)
-        innovation = y - H @ mean
-        innovation_cov = symmetrise(H @ cov @ H.T + R)
-        gain, chol = cholesky_gain(cov @ H.T, innovation_cov)  # K = P- H^T S^{-1}
-        log_likelihood = gaussian_log_density(innovation, chol)
-        posterior_mean = mean + gain @ innovation
-        joseph = identity - gain @ H
-        posterior_cov = symmetrise(joseph @ cov @ joseph.T + gain @ R @ gain.T)
-        mean = jnp.where(observed, posterior_mean, mean)
-        cov = jnp.where(observed, posterior_cov, cov)
-        log_likelihood = jnp.where(observed, log_likelihood, 0.0)
+        # NaN components are missing: zero rows of H and of the innovation, the identity in S
+        # off the observed block (lib.gaussian): exactly the deleted-rows update; with nothing
+        # observed the gain is 0 and the step is a prediction.
+        observed = jnp.isfinite(y)
+        observed_matrix = jnp.where(observed[:, None], H, 0.0)
+        innovation = jnp.where(observed, y - H @ mean, 0.0)
+        innovation_cov = restrict_to_observed(symmetrise(H @ cov @ H.T + R), observed)
+        gain, chol = cholesky_gain(cov @ observed_matrix.T, innovation_cov)  # K = P- H^T S^{-1}
+        log_likelihood = gaussian_log_density(innovation, chol, observed)
+        mean = mean + gain @ innovation
+        joseph = identity - gain @ observed_matrix
+        cov = symmetrise(joseph @ cov @ joseph.T + gain @ R @ gain.T)
         return (mean, cov), (mean, cov, log_likelihood)
 
     initial = (m0.astype(dtype), P0.astype(dtype))

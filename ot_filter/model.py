@@ -31,12 +31,24 @@ import numpy as np
 
 Array = jax.Array
 
-__all__ = ["StateSpaceModel", "simulate", "model_dimensions"]
+__all__ = ["StateSpaceModel", "colour_noise", "dense_noise_cov", "model_dimensions", "simulate", "whiten"]
 
 
 def check_covariance(name: str, matrix, size: int, positive_definite: bool) -> None:
     """Raises ValueError (naming ``name``) unless ``matrix`` is a finite symmetric [size, size]
-    positive (semi-)definite matrix. Traced values (inside jit / vmap) are only shape-checked."""
+    positive (semi-)definite matrix, or a diagonal ``[size]`` of positive (non-negative) entries.
+    Traced values (inside jit / vmap) are only shape-checked."""
+    if np.ndim(matrix) == 1:
+        if np.shape(matrix) != (size,):
+            raise ValueError(f"{name} must have shape ({size},) or ({size}, {size}), got {np.shape(matrix)}")
+        if isinstance(matrix, jax.core.Tracer):
+            return
+        diagonal = np.asarray(matrix, dtype=np.float64)
+        if not np.all(np.isfinite(diagonal)):
+            raise ValueError(f"{name} must be finite")
+        if (diagonal.min() <= 0) if positive_definite else (diagonal.min() < 0):
+            raise ValueError(f"{name} (a diagonal) must be positive, smallest entry {diagonal.min():.3g}")
+        return
     if np.shape(matrix) != (size, size):
         raise ValueError(f"{name} must have shape ({size}, {size}), got {np.shape(matrix)}")
     if isinstance(matrix, jax.core.Tracer):
@@ -64,11 +76,13 @@ class StateSpaceModel(NamedTuple):
       log_likelihood: optional ``(y[m], x[n]) -> scalar``, the log density log l(y | x)
         (needed by SIR; keep its normalising constant if you want SIR's marginal likelihood).
       observation_function: optional noiseless ``x[n] -> h(x)[m]`` for additive Gaussian noise.
-      observation_noise_cov: optional ``R[m, m]`` for additive Gaussian noise.
+      observation_noise_cov: optional ``R[m, m]`` for additive Gaussian noise, or ``R[m]``, its
+        diagonal (independent noise per component: the built-in models; no m x m matrix is
+        ever formed, which is what lets Lorenz-96 run at m = 40,000).
       parameters: optional pytree of arrays a built-in model keeps (e.g. the matrices of a
         linear-Gaussian model for the exact Kalman filter).
       observation_noise_factors: optional ``(L, L^{-1})``, the Cholesky factor of R and its
-        inverse. Leave it None: ``run_filter`` fills it once before its scan (see
+        inverse (for a diagonal ``R[m]``, the vectors of standard deviations and their inverses). Leave it None: ``run_filter`` fills it once before its scan (see
         ``with_observation_noise_factors``) so that the EnKF does not refactor the constant R at
         every step; updates called directly factor R themselves.
     """
@@ -81,6 +95,8 @@ class StateSpaceModel(NamedTuple):
     observation_noise_cov: Array | None = None
     parameters: Any = None
     observation_noise_factors: tuple[Array, Array] | None = None
+    geometry: Any = None  # optional localisation.Geometry: where state and observations lie
+
 
     @property
     def has_gaussian_observation_noise(self) -> bool:
@@ -104,7 +120,8 @@ def _flatten(model: StateSpaceModel):
     is_tree = tuple(isinstance(function, jax.tree_util.Partial) for function in functions)
     trees = tuple(function if tree else None for function, tree in zip(functions, is_tree))
     static = tuple(None if tree else function for function, tree in zip(functions, is_tree))
-    children = (trees, model.observation_noise_cov, model.parameters, model.observation_noise_factors)
+    children = (trees, model.observation_noise_cov, model.parameters, model.observation_noise_factors,
+                model.geometry)
     return children, (static, is_tree)
 
 
@@ -137,6 +154,9 @@ def with_observation_noise_factors(model: StateSpaceModel, dtype=None) -> StateS
     noise_cov = jnp.asarray(model.observation_noise_cov)
     if dtype is not None:
         noise_cov = noise_cov.astype(jnp.promote_types(noise_cov.dtype, dtype))
+    if noise_cov.ndim == 1:  # diagonal R: standard deviations and their inverses
+        std = jnp.sqrt(noise_cov)
+        return model._replace(observation_noise_factors=(std, 1.0 / std))
     chol = jnp.linalg.cholesky(noise_cov)
     inverse = jax.scipy.linalg.solve_triangular(
         chol, jnp.eye(noise_cov.shape[0], dtype=chol.dtype), lower=True
@@ -150,6 +170,43 @@ def observation_noise_factors(model: StateSpaceModel, dtype) -> tuple[Array, Arr
         model = with_observation_noise_factors(model, dtype)
     chol, inverse = model.observation_noise_factors
     return jnp.asarray(chol, dtype), jnp.asarray(inverse, dtype)
+
+
+def observed_noise_factors(model: StateSpaceModel, observed: Array, dtype) -> tuple[Array, Array]:
+    """The factors of R restricted to the ``observed[m]`` components, for ``whiten``: with a
+    diagonal R, R's own (the caller zeroes the missing components); with a full R, those of
+    R~ = R on the observed block and the identity elsewhere, whose Cholesky factor has the same
+    block structure (no fill-in), so that whitening the observed components is exactly by
+    L_oo^{-1}. The constant factors are reused when everything is observed (a ``cond``)."""
+    factors = observation_noise_factors(model, dtype)
+    if factors[0].ndim == 1:
+        return factors
+
+    def masked():
+        noise_cov = jnp.asarray(model.observation_noise_cov, dtype)
+        identity = jnp.eye(noise_cov.shape[0], dtype=dtype)
+        chol = jnp.linalg.cholesky(jnp.where(observed[:, None] & observed[None, :], noise_cov, identity))
+        return chol, jax.scipy.linalg.solve_triangular(chol, identity, lower=True)
+
+    return jax.lax.cond(jnp.all(observed), lambda: factors, masked)
+
+
+def colour_noise(factors: tuple[Array, Array], standard: Array) -> Array:
+    """``standard[..., m] @ L^T``: standard normals to N(0, R) noise (``factors = (L, L^{-1})``)."""
+    chol, _ = factors
+    return standard * chol if chol.ndim == 1 else standard @ chol.T
+
+
+def whiten(factors: tuple[Array, Array], values: Array) -> Array:
+    """``L^{-1} v`` for each row ``v`` of ``values[..., m]`` (``factors = (L, L^{-1})``)."""
+    _, inverse = factors
+    return values * inverse if inverse.ndim == 1 else values @ inverse.T
+
+
+def dense_noise_cov(noise_cov: Array) -> Array:
+    """R as an ``[m, m]`` matrix (a diagonal ``R[m]`` expanded)."""
+    noise_cov = jnp.asarray(noise_cov)
+    return jnp.diag(noise_cov) if noise_cov.ndim == 1 else noise_cov
 
 
 def model_dimensions(model: StateSpaceModel) -> tuple[int, int]:

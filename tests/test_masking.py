@@ -17,7 +17,7 @@ import pytest
 import ot_filter as otf
 from conftest import random_linear_gaussian
 from ot_filter.updates.base import uniform_log_weights
-from ot_filter.updates.enkf import _random_rotation
+from ot_filter.updates.enkf import random_rotation
 
 NUM_STEPS = 5
 NUM_PARTICLES, NUM_ACTIVE = 200, 50
@@ -255,7 +255,7 @@ def test_masked_rotation_is_haar_on_the_active_block():
     num, num_active, draws = 8, 6, 4000
     centring = jnp.zeros((num, num_active)).at[:num_active].set(jnp.eye(num_active) - 1.0 / num_active)
     rotated = jax.jit(lambda keys: jax.lax.map(
-        lambda k: _random_rotation(k, centring, jnp.asarray(num_active)), keys))(
+        lambda k: random_rotation(k, centring, jnp.asarray(num_active)), keys))(
         jax.random.split(jax.random.key(0), draws))
     np.testing.assert_array_equal(rotated[:, num_active:], 0.0)
     rotations = np.asarray(rotated[:, :num_active], np.float64) + 1.0 / num_active

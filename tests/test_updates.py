@@ -174,16 +174,16 @@ def test_updates_reject_models_they_cannot_handle():
 
 
 @pytest.mark.long
-def test_random_rotation_is_haar_on_the_complement_of_ones(x64):
+def testrandom_rotation_is_haar_on_the_complement_of_ones(x64):
     """O = rotation(C) + 11^T/N for the centring matrix C. Checks O O^T = I and O 1 = 1, and for
     the block Q acting on the complement (in the basis of the Householder reflection P): the
     Haar moments E[Q] = 0, E[Q_ij^2] = 1/d, E[Q_ij^4] = 3/(d(d+2)), d = N - 1 (5 std errors)."""
-    from ot_filter.updates.enkf import _random_rotation
+    from ot_filter.updates.enkf import random_rotation
 
     num, draws = 6, 4000
     centring = jnp.eye(num) - 1.0 / num
     ones = jnp.ones((num, num)) / num
-    rotations = jax.vmap(lambda k: _random_rotation(k, centring) + ones)(
+    rotations = jax.vmap(lambda k: random_rotation(k, centring) + ones)(
         jax.random.split(jax.random.key(0), draws)
     )
     np.testing.assert_allclose(rotations @ jnp.swapaxes(rotations, 1, 2), np.broadcast_to(np.eye(num), rotations.shape), atol=1e-10)

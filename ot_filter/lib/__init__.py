@@ -8,6 +8,7 @@ reference (``tests/test_lib.py``); the updates, gains and filters of the package
 - ``linalg``: symmetrise, PSD square roots, truncated pseudo-inverse solves;
 - ``gaussian``: Gaussian conditioning (the Kalman gain) through a Cholesky factor;
 - ``ensemble``: (masked, weighted) ensemble means, anomalies, standard deviations, covariances;
+- ``transform``: the ETKF's ensemble transform (global square-root EnKF and LETKF);
 - ``weights``: log-weight normalisation and the effective sample size;
 - ``fallback``: "use the fallback where the primary result failed", over pytrees.
 """

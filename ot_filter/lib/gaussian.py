@@ -6,6 +6,13 @@ definite), E[X | Y = y] = E X + K (y - E Y) with the gain K = C S^{-1}. S is fac
 S = L L^T, and K is obtained by two triangular solves against the n columns of C^T, never by
 forming S^{-1}; the same factor gives the log-density of the innovation,
 log N(y - E Y; 0, S) = -m/2 log 2 pi - sum log diag L - |L^{-1} (y - E Y)|^2 / 2.
+
+Missing components (a mask ``observed[m]``): ``restrict_to_observed`` keeps S on the observed
+block and puts the identity elsewhere. With the cross-covariance's and the residual's missing
+entries zero, the gain's missing columns are exactly 0 and its observed ones those of the
+deleted-rows problem: the lower Cholesky factor of such a matrix has the same block structure
+(no fill-in: L_ij = 0 when exactly one of i, j is missing), so the observed block's arithmetic
+is that of the smaller matrix. The log-density then counts the observed dimensions only.
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ import jax.numpy as jnp
 
 Array = jax.Array
 
-__all__ = ["cholesky_gain", "gaussian_log_density"]
+__all__ = ["cholesky_gain", "gaussian_log_density", "restrict_to_observed"]
 
 
 def cholesky_gain(cross_covariance: Array, innovation_covariance: Array) -> tuple[Array, Array]:
@@ -29,8 +36,19 @@ def cholesky_gain(cross_covariance: Array, innovation_covariance: Array) -> tupl
     return gain, chol
 
 
-def gaussian_log_density(residual: Array, chol: Array) -> Array:
-    """``log N(residual; 0, L L^T)`` for ``residual[m]`` and a lower Cholesky factor ``L[m, m]``."""
+def restrict_to_observed(matrix: Array, observed: Array) -> Array:
+    """``matrix[m, m]`` on the ``observed[m]`` block, the identity elsewhere (module docstring)."""
+    identity = jnp.eye(matrix.shape[-1], dtype=matrix.dtype)
+    return jnp.where(observed[:, None] & observed[None, :], matrix, identity)
+
+
+def gaussian_log_density(residual: Array, chol: Array, observed: Array | None = None) -> Array:
+    """``log N(residual; 0, L L^T)`` for ``residual[m]`` and a lower Cholesky factor ``L[m, m]``.
+
+    With ``observed[m]``: the density of the observed components, for L the factor of a
+    ``restrict_to_observed`` matrix (the residual's missing entries are ignored)."""
+    if observed is not None:
+        residual = jnp.where(observed, residual, 0.0)
     whitened = jax.scipy.linalg.solve_triangular(chol, residual, lower=True)
-    dim = residual.shape[-1]
+    dim = residual.shape[-1] if observed is None else jnp.sum(observed)
     return -0.5 * dim * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(chol))) - 0.5 * whitened @ whitened

@@ -32,10 +32,14 @@ def gaussian_sample_observation(numbers, key, x):
 
 
 def gaussian_log_likelihood(numbers, y, x):
-    """``log N(y; h(x), std^2 I)``; ``numbers = (std, h)``."""
+    """``log N(y_o; h(x)_o, std^2 I)`` over the observed (finite) components o of y: a NaN
+    component is missing and the density is the marginal of the others (exact, the noise being
+    independent per component); ``numbers = (std, h)``."""
     std, observation_function = numbers
-    log_normaliser = -y.shape[-1] * (0.5 * jnp.log(2 * jnp.pi) + jnp.log(std))
-    return log_normaliser - 0.5 * jnp.sum(((y - observation_function(x)) / std) ** 2)
+    observed = jnp.isfinite(y)
+    residual = jnp.where(observed, y - observation_function(x), 0.0) / std
+    log_normaliser = -jnp.sum(observed) * (0.5 * jnp.log(2 * jnp.pi) + jnp.log(std))
+    return log_normaliser - 0.5 * jnp.sum(residual**2)
 
 
 def with_gaussian_observation(
@@ -45,6 +49,7 @@ def with_gaussian_observation(
     observation_dim: int,
     observation_noise_std: float,
     parameters=None,
+    geometry=None,
 ) -> StateSpaceModel:
     """Completes a model with ``Y = h(X) + std * W``, ``W ~ N(0, I_m)``: sampler, h, R, log l.
 
@@ -62,6 +67,8 @@ def with_gaussian_observation(
         sample_observation=bind(gaussian_sample_observation, numbers),
         log_likelihood=bind(gaussian_log_likelihood, numbers),
         observation_function=observation_function,
-        observation_noise_cov=std**2 * jnp.eye(observation_dim),
+        # The diagonal of R (independent noise): no m x m matrix, whatever m.
+        observation_noise_cov=std**2 * jnp.ones(observation_dim),
         parameters=parameters,
+        geometry=geometry,
     )

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ot_filter.lib.gaussian import gaussian_log_density, restrict_to_observed
 from ot_filter.lib.linalg import psd_sqrt
 from ot_filter.model import StateSpaceModel, check_covariance
 
@@ -48,7 +49,6 @@ def linear_gaussian(A, Q, H, R, m0, P0) -> StateSpaceModel:
 
     parameters = LinearGaussianParameters(A, Q, H, R, m0, P0)
     transition_sqrt, observation_sqrt, initial_sqrt = psd_sqrt(Q), psd_sqrt(R), psd_sqrt(P0)
-    observation_chol = jnp.linalg.cholesky(R)
 
     def sample_initial(key):
         return m0 + initial_sqrt @ jax.random.normal(key, (n,), m0.dtype)
@@ -63,12 +63,13 @@ def linear_gaussian(A, Q, H, R, m0, P0) -> StateSpaceModel:
         return H @ x + observation_sqrt @ jax.random.normal(key, (m,), x.dtype)
 
     # The full Gaussian density, normalising constant included: SIR's marginal likelihood
-    # estimate is then comparable with the Kalman filter's.
-    log_normaliser = -0.5 * m * jnp.log(2 * jnp.pi) - jnp.sum(jnp.log(jnp.diag(observation_chol)))
-
+    # estimate is then comparable with the Kalman filter's. NaN components of y are missing:
+    # the density of the others (lib.gaussian.restrict_to_observed; R's factor then depends on
+    # y only, so under vmap over particles it is computed once).
     def log_likelihood(y, x):
-        whitened = jax.scipy.linalg.solve_triangular(observation_chol, y - H @ x, lower=True)
-        return log_normaliser - 0.5 * jnp.sum(whitened**2)
+        observed = jnp.isfinite(y)
+        chol = jnp.linalg.cholesky(restrict_to_observed(R, observed))
+        return gaussian_log_density(y - H @ x, chol, observed)
 
     return StateSpaceModel(
         sample_initial=sample_initial,

@@ -22,6 +22,7 @@ import numpy as np
 
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import is_traced
+from ot_filter.localisation import ring
 from ot_filter.model import StateSpaceModel
 from ot_filter.models._gaussian_observation import (
     check_nonnegative,
@@ -107,6 +108,7 @@ def _ode_model(
     process_noise_std: float,
     initial_mean: Array,
     initial_std: float,
+    geometry_builder: Callable | None = None,
 ) -> StateSpaceModel:
     dt = check_positive("dt", dt)
     if not isinstance(steps_per_observation, int) or steps_per_observation < 1:
@@ -133,6 +135,7 @@ def _ode_model(
         bind(_observe_components, observed=tuple(int(i) for i in observed)),
         observed.size,
         observation_noise_std,
+        geometry=None if geometry_builder is None else geometry_builder(observed),
     )
 
 
@@ -171,6 +174,9 @@ def lorenz96(
 ) -> StateSpaceModel:
     """Lorenz-96; defaults: Sakov & Oke (2008) twin experiment as in DAPPER (all observed).
 
+    The model carries its geometry (``model.geometry``, a ``localisation.ring`` of ``dim``
+    sites, each observation at the site it observes) for ``ot_filter.localisation``.
+
     ``initial_mean`` defaults to DAPPER's ``x0``: zeros with the first component 1, from which
     the truth spins up to the attractor (DAPPER averages after a burn-in of 20 time units).
     """
@@ -182,5 +188,5 @@ def lorenz96(
     return _ode_model(
         lorenz96_vector_field, (forcing,), dim, dt, integrator,
         steps_per_observation, observed, observation_noise_std, process_noise_std,
-        initial_mean, initial_std,
+        initial_mean, initial_std, lambda observed: ring(dim, observed),
     )

@@ -37,11 +37,13 @@ MAX_PREDICTIVE_Z = 10.0
 def predictive_z(key: Array, sample_observation: Callable, particles: Array, observation: Array,
                  active: Array) -> Array:
     """max over coordinates of |y - mean Y'| / std Y', with Y' simulated at ``particles[N, n]``
-    (non-finite particles replaced by 0 for the simulation; the active rows only)."""
+    (non-finite particles replaced by 0 for the simulation; the active rows only; over the
+    observed coordinates, NaN ones being missing)."""
     safe = jnp.where(jnp.isfinite(particles), particles, 0.0)
     predicted = jax.vmap(sample_observation)(jax.random.split(key, particles.shape[0]), safe)
     mean, std = masked_mean_and_std(predicted, active)
-    return jnp.max(jnp.abs(observation - mean) / (std + 1e-12))
+    z = jnp.abs(observation - mean) / (std + 1e-12)
+    return jnp.max(jnp.where(jnp.isfinite(observation), z, 0.0))
 
 
 def diverged(trace_finite: Array, smoothed_loss: Array, threshold, n: int, moved_standard: Array,

@@ -8,6 +8,7 @@ from ot_filter.updates.base import (
     uniform_log_weights,
 )
 from ot_filter.updates.enkf import EnKFInfo, EnKFSettings, enkf
+from ot_filter.updates.letkf import LETKFInfo, LETKFSettings, letkf
 from ot_filter.updates.ot import OTInfo, OTSettings, OTState, OTStructure, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
 from ot_filter.updates.sir import SIRInfo, SIRSettings, SIRState, sir
@@ -16,6 +17,8 @@ __all__ = [
     "BayesUpdate",
     "EnKFInfo",
     "EnKFSettings",
+    "LETKFInfo",
+    "LETKFSettings",
     "OTInfo",
     "OTSettings",
     "OTState",
@@ -29,6 +32,7 @@ __all__ = [
     "active_mask",
     "count_active",
     "enkf",
+    "letkf",
     "ot",
     "resample_indices",
     "sir",

@@ -55,9 +55,18 @@ from ot_filter.lib.ensemble import masked_mean_and_anomalies
 from ot_filter.lib.gaussian import cholesky_gain
 from ot_filter.lib.linalg import truncated_pinv_solve
 from ot_filter.lib.static import bind
+from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_number
 from ot_filter.lib.weights import active_mask, count_active, count_dependent
-from ot_filter.model import StateSpaceModel, observation_noise_factors
+from ot_filter.localisation import Localisation, distances, taper_weights
+from ot_filter.model import (
+    StateSpaceModel,
+    colour_noise,
+    dense_noise_cov,
+    observation_noise_factors,
+    observed_noise_factors,
+    whiten,
+)
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
 
 Array = jax.Array
@@ -79,9 +88,11 @@ class EnKFSettings(NamedTuple):
     """The EnKF's numbers (traced: ``vmap`` over them runs in one program)."""
 
     inflation: Array  # multiplicative inflation (>= 1) of the prior anomalies
+    localisation: Localisation | None = None  # Schur-product localisation (perturbed only)
 
 
-def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -> BayesUpdate:
+def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False,
+         localisation: Localisation | None = None) -> BayesUpdate:
     """Builds the EnKF Bayes update.
 
     Args:
@@ -90,8 +101,19 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False) -
       perturbed: True for the stochastic perturbed-observation EnKF (simulation-based);
         False for the deterministic square-root update (needs h and R in the model). Static.
       rotate: apply a random mean-preserving rotation to the posterior anomalies. Static.
+      localisation: optional ``ot_filter.localisation(model.geometry, radius)``: Schur-product
+        (covariance) localisation of the perturbed EnKF, Cov(X, Y) and Cov(Y) multiplied
+        entrywise by the taper of the distances (dense: O(n m + m^2) memory, for m up to a few
+        thousand). The square-root EnKF localises as ``ot_filter.letkf``.
     """
-    settings = EnKFSettings(check_number("inflation", inflation, minimum=1.0))
+    if localisation is not None:
+        if not isinstance(localisation, Localisation):
+            raise TypeError(f"localisation must be built by ot_filter.localisation(...), got "
+                            f"{type(localisation).__name__}")
+        if not perturbed:
+            raise ValueError("enkf(perturbed=False) does not localise: use ot_filter.letkf "
+                             "(the local square-root filter) or enkf(perturbed=True, localisation=...)")
+    settings = EnKFSettings(check_number("inflation", inflation, minimum=1.0), localisation)
     return BayesUpdate(
         uniform_weights_init,
         bind(enkf_apply, settings, perturbed=bool(perturbed), rotate=bool(rotate)),
@@ -121,7 +143,8 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
     particles = jnp.where(inflation == 1.0, particles, mean + anomalies)
     if perturbed:
         particles, condition = _perturbed_update(
-            update_key, particles, anomalies, observation, model, active, num_active
+            update_key, particles, anomalies, observation, model, active, num_active,
+            settings.localisation,
         )
     else:
         particles, condition = _square_root_update(
@@ -131,33 +154,50 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
     if rotate:
         # Active rows first (stable: the unpadded order is kept), rotated, put back.
         order = jnp.argsort((~active).astype(jnp.int32), stable=True)
-        rotated = _random_rotation(rotation_key, posterior_anomalies[order], num_active)
+        rotated = random_rotation(rotation_key, posterior_anomalies[order], num_active)
         particles = posterior_mean + jnp.zeros_like(rotated).at[order].set(rotated)
     # Padding leaves at the posterior mean: finite and bounded, whatever it came in as.
     particles = jnp.where(active[:, None], particles, posterior_mean)
     return particles, state, EnKFInfo(condition)
 
 
-def _perturbed_update(key, particles, anomalies, observation, model, active, num_active):
-    """Anomalies have zero padding rows; padding rows of the result are left for the caller."""
+def _perturbed_update(key, particles, anomalies, observation, model, active, num_active,
+                      localisation):
+    """Anomalies have zero padding rows; padding rows of the result are left for the caller.
+
+    Missing components (NaN in the observation) get zero rows and columns in the gain's
+    equations (identity rows in Cov(h) + R, dropped directions of the simulated Cov(Y)): the
+    result is that of the model with those rows of h and R deleted."""
     num_particles = particles.shape[0]
     rows = active[:, None]
+    observed = jnp.isfinite(observation)
+    both_observed = observed[:, None] & observed[None, :]
 
     def unbiased(second_moment):  # / (k - 1)
         return count_dependent(lambda count: second_moment / (count - 1), num_active, num_particles)
 
+    state_taper, observation_taper = _schur_tapers(localisation, particles.dtype)
     if model.has_gaussian_observation_noise:
         # Exact R: Cov(h) + R is positive definite, so Cholesky suffices (cheaper than eigh).
         predicted = jax.vmap(model.observation_function)(particles)
-        noise_cov = jnp.asarray(model.observation_noise_cov, particles.dtype)
-        noise_chol, _ = observation_noise_factors(model, particles.dtype)
-        noise = jax.random.normal(key, predicted.shape, particles.dtype) @ noise_chol.T
+        noise_cov = dense_noise_cov(model.observation_noise_cov).astype(particles.dtype)
+        factors = observation_noise_factors(model, particles.dtype)
+        # Draws of N(0, R); on the observed components, draws of N(0, R_oo) (a marginal).
+        # Drawn component-major ([m, N], then transposed): jax.random streams are
+        # prefix-consistent, so the first m' components' noise is that of a model with only
+        # those m' (with L's leading block, the Cholesky factor of R's leading block): deleting
+        # trailing components gives the same draws (tests/test_partial_observations.py).
+        standard = jax.random.normal(key, predicted.shape[::-1], particles.dtype).T
+        noise = colour_noise(factors, standard)
         # Centred perturbations (no sampling bias), over the active particles.
         _, noise = masked_mean_and_anomalies(noise, active, num_active)
         _, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
-        innovation_cov = unbiased(predicted_anomalies.T @ predicted_anomalies) + noise_cov
-        cross_cov = unbiased(anomalies.T @ predicted_anomalies)  # [n, m]
-        innovations = jnp.where(rows, observation - predicted - noise, 0.0)  # [N, m]
+        innovation_cov = observation_taper * unbiased(predicted_anomalies.T @ predicted_anomalies)
+        innovation_cov = jnp.where(both_observed, innovation_cov + noise_cov,
+                                   jnp.eye(observation.shape[0], dtype=particles.dtype))
+        cross_cov = state_taper * unbiased(anomalies.T @ predicted_anomalies)  # [n, m]
+        cross_cov = jnp.where(observed[None, :], cross_cov, 0.0)
+        innovations = jnp.where(rows & observed, observation - predicted - noise, 0.0)  # [N, m]
         # K = Cov(X, h) (Cov(h) + R)^{-1}: solves against the n columns of Cov(X, h)^T, not the
         # N innovations. (An [m, N] right-hand side made jaxlib's CPU batched triangular solve
         # under vmap 60-150x slower for N >= 800 on 2 cores, and costs O(m^2 N) instead of O(m^2 n).)
@@ -169,73 +209,72 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
     keys = jax.random.split(key, num_particles)
     simulated = jax.vmap(model.sample_observation)(keys, particles)
     _, simulated_anomalies = masked_mean_and_anomalies(simulated, active, num_active)
-    innovation_cov = unbiased(simulated_anomalies.T @ simulated_anomalies)
-    cross_cov = unbiased(anomalies.T @ simulated_anomalies)
+    simulated_anomalies = jnp.where(observed, simulated_anomalies, 0.0)
+    innovation_cov = observation_taper * unbiased(simulated_anomalies.T @ simulated_anomalies)
+    cross_cov = state_taper * unbiased(anomalies.T @ simulated_anomalies)
     eps = jnp.finfo(particles.dtype).eps
     # Truncated pseudo-inverse: a singular Cov(Y) (N <= m, or a collapsed ensemble with a
     # deterministic simulator) updates only along the directions the ensemble spans.
-    innovations = jnp.where(rows, observation - simulated, 0.0)
+    innovations = jnp.where(rows & observed, observation - simulated, 0.0)
     solved, condition = truncated_pinv_solve(
         innovation_cov, innovations.T, relative_cutoff=observation.shape[0] * eps
     )
     return particles + (cross_cov @ solved).T, condition
 
 
-def _square_root_update(mean, anomalies, observation, model, active, num_active):
-    """ETKF with the symmetric square root through the smaller Gram matrix of S (see above).
+def _schur_tapers(localisation, dtype):
+    """``(rho_xy [n, m], rho_yy [m, m])`` of the Schur-product localisation, or ``(1, 1)``."""
+    if localisation is None:
+        return 1.0, 1.0
+    geometry = localisation.geometry
 
-    With S S^T = U diag(s2) U^T (N <= m) the transform is A + U diag(f(s2)) U^T A with
-    f(s2) = 1 / sqrt(1 + s2) - 1 and the mean weights U diag(1 / (1 + s2)) U^T S d. With
-    S^T S = V diag(s2) V^T (m < N), U = S V diag(s)^-1 gives A + S V diag(f(s2) / s2) V^T S^T A,
-    where f(s2) / s2 = -1 / (sqrt(1 + s2) (1 + sqrt(1 + s2))) is finite at s2 = 0, and the
-    mean weights S V diag(1 / (1 + s2)) V^T d. Adding the identity keeps the Gram matrix's
-    squared condition number harmless: only 1 + s2 matters.
+    def taper(a, b):
+        return taper_weights(distances(geometry, a, b), localisation.radius, localisation.taper)
+
+    observations = geometry.observation_positions
+    return (taper(geometry.state_positions, observations).astype(dtype),
+            taper(observations, observations).astype(dtype))
+
+
+def _square_root_update(mean, anomalies, observation, model, active, num_active):
+    """ETKF with the symmetric square root (``lib.transform.etkf_transform``).
 
     With padding (zero rows of A, hence of S) N is the padded size in the choice of branch and
-    k = ``num_active`` everywhere else; rank(S) <= k - 1.
+    k = ``num_active`` everywhere else; rank(S) <= k - 1. Missing components (NaN) are zero
+    columns of S and d, whitened with the factor of R_oo (``observed_noise_factors``): the
+    result is that of the model with those rows deleted.
     """
     num_particles = anomalies.shape[0]
     m = observation.shape[0]
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
     predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
-    # Whitening matrix L^{-1} of the model's constant R (formed once per run by run_filter): the
-    # whitening is then a matmul. (Triangular solves against the ensemble would become one
-    # batched LAPACK solve per member under vmap, which is slower and deadlocked jaxlib's CPU
-    # thread pool for vmaps over 128+ simulations on 2 cores.)
-    _, whitening = observation_noise_factors(model, dtype)
+    # Whitening by L^{-1} of the model's constant R (formed once per run by run_filter): a
+    # matmul. (Triangular solves against the ensemble would become one batched LAPACK solve per
+    # member under vmap, which is slower and deadlocked jaxlib's CPU thread pool for vmaps over
+    # 128+ simulations on 2 cores.)
+    observed = jnp.isfinite(observation)
+    factors = observed_noise_factors(model, observed, dtype)
 
     def over_scale(value):  # / sqrt(k - 1)
         return count_dependent(
             lambda count: value / jnp.sqrt(jnp.asarray(count - 1, dtype)), num_active, num_particles
         )
 
-    whitened = over_scale(predicted_anomalies @ whitening.T)  # S [N, m]
-    innovation = whitening @ (observation - predicted_mean)  # d [m]
-    if num_particles <= m:
-        s2, left = jnp.linalg.eigh(whitened @ whitened.T)
-        s2 = jnp.clip(s2, 0.0)
-        mean_weights = left @ ((left.T @ (whitened @ innovation)) / (1.0 + s2))
-        shrink = 1.0 / jnp.sqrt(1.0 + s2) - 1.0
-        posterior_anomalies = anomalies + left @ (shrink[:, None] * (left.T @ anomalies))
-    else:
-        s2, right = jnp.linalg.eigh(whitened.T @ whitened)
-        s2 = jnp.clip(s2, 0.0)
-        mean_weights = whitened @ (right @ ((right.T @ innovation) / (1.0 + s2)))
-        root = jnp.sqrt(1.0 + s2)
-        shrink_over_s2 = -1.0 / (root * (1.0 + root))
-        projected = right.T @ (whitened.T @ anomalies)  # [m, n]
-        posterior_anomalies = anomalies + whitened @ (right @ (shrink_over_s2[:, None] * projected))
+    whitened = over_scale(jnp.where(observed, whiten(factors, predicted_anomalies), 0.0))  # S
+    residual = jnp.where(observed, observation - predicted_mean, 0.0)
+    innovation = jnp.where(observed, whiten(factors, residual), 0.0)  # d [m]
+    mean_weights, posterior_anomalies, s2 = etkf_transform(whitened, innovation, anomalies)
     posterior_mean = mean + over_scale(mean_weights @ anomalies)
-    # Rank of S is at most k - 1: with k - 1 < m some eigenvalues of I + S^T S are exactly 1.
+    # Rank of S is at most min(k - 1, number observed): other eigenvalues of I + S^T S are 1.
     if num_particles - 1 < m:
         smallest = 1.0
     else:
-        smallest = jnp.where(num_active - 1 < m, 1.0, 1.0 + jnp.min(s2))
+        smallest = jnp.where((num_active - 1 < m) | ~jnp.all(observed), 1.0, 1.0 + jnp.min(s2))
     return posterior_mean + posterior_anomalies, (1.0 + jnp.max(s2)) / smallest
 
 
-def _random_rotation(key, anomalies, num_active=None):
+def random_rotation(key, anomalies, num_active=None):
     """O A with O a Haar-random orthogonal matrix on the complement of the ones vector.
 
     With ``num_active = k`` (rows k.. are padding, zero anomalies) O is the k x k such rotation

@@ -357,7 +357,15 @@ def _apply(settings, key, state, particles, observation, model, structure):
     active = active_mask(state.log_weights)
     num_active = jnp.sum(active)
     scaling = standardisation(particles, simulated, active)
-    xs, ys = scaling.standardise_x(particles), scaling.standardise_y(simulated)
+    # Missing components (NaN in y) are set to their standardised mean 0 in every training pair
+    # and in y: a constant carries no information, so the map learnt is T(x, y_observed).
+    observed = jnp.isfinite(observation)
+
+    def sample_observation(key, x):
+        return jnp.where(observed, model.sample_observation(key, x), scaling.y_mean)
+
+    xs = scaling.standardise_x(particles)
+    ys = jnp.where(observed, scaling.standardise_y(simulated), 0.0)
     data = TrainingData(
         xs, ys,
         active_index=jnp.argsort(~active, stable=True),  # mini-batches draw indices below num_active
@@ -375,7 +383,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
     training, trace = train_saddle(
         train_key, training,
         lambda batch_key: sample_batch(
-            batch_key, data, model.sample_observation, batch_size=structure.batch_size,
+            batch_key, data, sample_observation, batch_size=structure.batch_size,
             smoothing=structure.smoothing, fresh_observations=structure.fresh_observations,
             enkf_layer=structure.enkf_layer,
         ),
@@ -389,14 +397,12 @@ def _apply(settings, key, state, particles, observation, model, structure):
 
     # 3. Transport the particles to the actual observation.
     gain = enkf_gain(xs, ys, active) if structure.enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
-    observed = jnp.all(jnp.isfinite(observation))
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
     moved = _transport_standardised(structure, params.transport, xs, y_standard, ys, gain)
 
     # 4. Checks: divergence (loss, spread, posterior predictive) and c-concavity.
     z = predictive_check(jax.random.fold_in(key, 4), model.sample_observation,
                          scaling.restore_x(moved), observation, active)
-    z = jnp.where(observed, z, 0.0)
     diverged = divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
                                moved, active, z)
     min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data)
@@ -407,9 +413,9 @@ def _apply(settings, key, state, particles, observation, model, structure):
         observation, model, perturbed=True, rotate=False,
     )
     posterior = use_where(~diverged, scaling.restore_x(moved), enkf_particles)
-    # A non-finite observation carries no information: the particles stay (run_filter skips
-    # such steps before getting here).
-    posterior = jnp.where(observed, posterior, particles)
+    # An observation with nothing finite carries no information: the particles stay
+    # (run_filter skips such steps before getting here).
+    posterior = jnp.where(jnp.any(observed), posterior, particles)
     fresh = init_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
     training = use_where(diverged, fresh, training)
 
