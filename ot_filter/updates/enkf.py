@@ -183,11 +183,12 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         noise_cov = dense_noise_cov(model.observation_noise_cov).astype(particles.dtype)
         factors = observation_noise_factors(model, particles.dtype)
         # Draws of N(0, R); on the observed components, draws of N(0, R_oo) (a marginal).
-        # Drawn component-major ([m, N], then transposed): jax.random streams are
-        # prefix-consistent, so the first m' components' noise is that of a model with only
-        # those m' (with L's leading block, the Cholesky factor of R's leading block): deleting
-        # trailing components gives the same draws (tests/test_partial_observations.py).
-        standard = jax.random.normal(key, predicted.shape[::-1], particles.dtype).T
+        # Component k's N draws come from its own key (fold_in k): they do not depend on m, so
+        # deleting trailing components leaves the others' draws (and L's leading block is the
+        # Cholesky factor of R's leading block: tests/test_partial_observations.py), and each
+        # stream is prefix-consistent in N (a padded particle axis, updates.base).
+        standard = jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(key, k), (num_particles,),
+                                                        particles.dtype))(jnp.arange(predicted.shape[1])).T
         noise = colour_noise(factors, standard)
         # Centred perturbations (no sampling bias), over the active particles.
         _, noise = masked_mean_and_anomalies(noise, active, num_active)
