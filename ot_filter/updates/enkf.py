@@ -141,6 +141,14 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
     inflation = settings.inflation
     anomalies = inflation * anomalies
     particles = jnp.where(inflation == 1.0, particles, mean + anomalies)
+    if not perturbed and rotate:
+        # Rotated square root: a Cholesky root on the complement of the ones vector instead of
+        # the symmetric root (no eigen-decomposition; the same ensemble in law, see there).
+        posterior_mean, posterior_anomalies, condition = _rotated_square_root_update(
+            rotation_key, mean, anomalies, observation, model, active, num_active
+        )
+        particles = jnp.where(active[:, None], posterior_mean + posterior_anomalies, posterior_mean)
+        return particles, state, EnKFInfo(condition)
     if perturbed:
         particles, condition = _perturbed_update(
             update_key, particles, anomalies, observation, model, active, num_active,
@@ -153,7 +161,7 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
     posterior_mean, posterior_anomalies = masked_mean_and_anomalies(particles, active, num_active)
     if rotate:
         # Active rows first (stable: the unpadded order is kept), rotated, put back.
-        order = jnp.argsort((~active).astype(jnp.int32), stable=True)
+        order = active_first(active)
         rotated = random_rotation(rotation_key, posterior_anomalies[order], num_active)
         particles = posterior_mean + jnp.zeros_like(rotated).at[order].set(rotated)
     # Padding leaves at the posterior mean: finite and bounded, whatever it came in as.
@@ -237,16 +245,12 @@ def _schur_tapers(localisation, dtype):
             taper(observations, observations).astype(dtype))
 
 
-def _square_root_update(mean, anomalies, observation, model, active, num_active):
-    """ETKF with the symmetric square root (``lib.transform.etkf_transform``).
-
-    With padding (zero rows of A, hence of S) N is the padded size in the choice of branch and
-    k = ``num_active`` everywhere else; rank(S) <= k - 1. Missing components (NaN) are zero
-    columns of S and d, whitened with the factor of R_oo (``observed_noise_factors``): the
-    result is that of the model with those rows deleted.
-    """
+def _whitened_observations(mean, anomalies, observation, model, active, num_active):
+    """``(S [N, m], d [m], over_scale)`` of the square-root updates: the whitened observation
+    anomalies S = (h(X) - mean h) L^{-1} / sqrt(k - 1), the whitened innovation d and the
+    division by sqrt(k - 1). Missing components (NaN) are zero columns of S and d, whitened with
+    the factor of R_oo (``observed_noise_factors``)."""
     num_particles = anomalies.shape[0]
-    m = observation.shape[0]
     dtype = anomalies.dtype
     predicted = jax.vmap(model.observation_function)(mean + anomalies)
     predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
@@ -265,6 +269,23 @@ def _square_root_update(mean, anomalies, observation, model, active, num_active)
     whitened = over_scale(jnp.where(observed, whiten(factors, predicted_anomalies), 0.0))  # S
     residual = jnp.where(observed, observation - predicted_mean, 0.0)
     innovation = jnp.where(observed, whiten(factors, residual), 0.0)  # d [m]
+    return whitened, innovation, over_scale
+
+
+def _square_root_update(mean, anomalies, observation, model, active, num_active):
+    """ETKF with the symmetric square root (``lib.transform.etkf_transform``).
+
+    With padding (zero rows of A, hence of S) N is the padded size in the choice of branch and
+    k = ``num_active`` everywhere else; rank(S) <= k - 1. Missing components (NaN) are zero
+    columns of S and d, whitened with the factor of R_oo (``observed_noise_factors``): the
+    result is that of the model with those rows deleted.
+    """
+    num_particles = anomalies.shape[0]
+    m = observation.shape[0]
+    observed = jnp.isfinite(observation)
+    whitened, innovation, over_scale = _whitened_observations(
+        mean, anomalies, observation, model, active, num_active
+    )
     mean_weights, posterior_anomalies, s2 = etkf_transform(whitened, innovation, anomalies)
     posterior_mean = mean + over_scale(mean_weights @ anomalies)
     # Rank of S is at most min(k - 1, number observed): other eigenvalues of I + S^T S are 1.
@@ -275,23 +296,56 @@ def _square_root_update(mean, anomalies, observation, model, active, num_active)
     return posterior_mean + posterior_anomalies, (1.0 + jnp.max(s2)) / smallest
 
 
-def random_rotation(key, anomalies, num_active=None):
-    """O A with O a Haar-random orthogonal matrix on the complement of the ones vector.
+def _rotated_square_root_update(key, mean, anomalies, observation, model, active, num_active):
+    """Square root followed by the random rotation, without an eigen-decomposition.
 
-    With ``num_active = k`` (rows k.. are padding, zero anomalies) O is the k x k such rotation
-    on the first k rows and the identity on the rest: the ones vector is that of the first k
-    rows and Q is Haar on O(k - 1), the reflections k - 2.. of Stewart's product being replaced
-    by the identity (all loops keep the static size N).
+    ``(posterior mean [n], posterior anomalies [N, n] (zero padding rows), condition)``. S has
+    zero column sums over the active rows, so in the basis of the reflection P of
+    ``random_rotation`` (active rows first) P (I + S S^T) P = diag(1, I + S' S'^T) with
+    S' = (P S)[1:]. With the Cholesky factor L L^T = I + S' S'^T, T = P diag(1, L^{-1}) P is a
+    square root of (I + S S^T)^{-1} (T^T T = (I + S S^T)^{-1}) that fixes the ones vector, so
+    T A has the posterior mean and covariance of the symmetric root T_s A. T = V T_s with
+    V = T T_s^{-1} orthogonal and fixing ones; for O Haar on the complement of ones, O V is again
+    Haar, so the rotated O T A has the law of the rotated symmetric root O T_s A: the same
+    analysis ensemble in distribution (not draw by draw). The mean increment
+    (S d)^T (I + S S^T)^{-1} A / sqrt(k - 1) is z^T Z / sqrt(k - 1) with
+    [Z | z] = L^{-1} [(P A)[1:] | S' d]. One (N - 1) x (N - 1) Cholesky and one triangular solve
+    (with the rotation's, two): jaxlib's CPU eigh of a 24 x 24 matrix alone was half a
+    Lorenz-96 cycle (~43 of 87 us).
 
-    The Householder reflection P (symmetric, orthogonal) maps e_1 to ones / sqrt(N), so
-    O = P diag(1, Q) P with Q Haar on O(N - 1) satisfies O 1 = 1. Q is drawn by Stewart's (1980)
-    algorithm, a product of N - 2 random Householder reflections and random signs, applied to
-    the anomalies one reflection at a time: O(N^2 n), no N x N matrix and no LAPACK QR (a
-    batched QR under vmap deadlocked jaxlib's CPU thread pool for 256 simulations).
+    ``condition`` is the squared ratio of the extreme diagonal entries of L, a cheap lower bound
+    on the max / min eigenvalue of I + S^T S (as the perturbed EnKF's exact-R branch reports).
     """
-    num = anomalies.shape[0]
+    num_particles = anomalies.shape[0]
     dtype = anomalies.dtype
-    count = num if num_active is None else num_active
+    whitened, innovation, over_scale = _whitened_observations(
+        mean, anomalies, observation, model, active, num_active
+    )
+    order = active_first(active)
+    reflect = _ones_reflection(num_particles, num_active, dtype)
+    reflected_anomalies = reflect(anomalies[order])[1:]  # (P A)[1:], padding rows 0
+    reflected_whitened = reflect(whitened[order])[1:]  # S', padding rows 0
+    gram = jnp.eye(num_particles - 1, dtype=dtype) + reflected_whitened @ reflected_whitened.T
+    chol = jnp.linalg.cholesky(gram)
+    right = jnp.concatenate([reflected_anomalies, (reflected_whitened @ innovation)[:, None]], axis=1)
+    solved = jax.scipy.linalg.solve_triangular(chol, right, lower=True)
+    transformed, weights = solved[:, :-1], solved[:, -1]
+    posterior_mean = mean + over_scale(weights @ transformed)
+    rotated = _haar_rotate(key, transformed, num_active - 1)
+    full = reflect(jnp.concatenate([jnp.zeros_like(anomalies[:1]), rotated]))
+    posterior_anomalies = full[jnp.argsort(order)]  # back to the original row order
+    diagonal = jnp.diag(chol)
+    return posterior_mean, posterior_anomalies, (jnp.max(diagonal) / jnp.min(diagonal)) ** 2
+
+
+def active_first(active):
+    """The permutation putting the active rows first (stable: the unpadded order is kept)."""
+    return jnp.argsort((~active).astype(jnp.int32), stable=True)
+
+
+def _ones_reflection(num, count, dtype):
+    """``reflect(M) = P M`` with P the Householder reflection (symmetric, orthogonal) that maps
+    e_1 to the unit vector of ones on the first ``count`` of ``num`` rows (identity beyond)."""
     inverse_sqrt = count_dependent(lambda c: 1.0 / jnp.sqrt(c), count, num)
     ones = jnp.where(jnp.arange(num) < count, inverse_sqrt, 0.0)  # unit vector of active ones
     direction = jnp.zeros(num, dtype).at[0].set(1.0) - ones
@@ -300,12 +354,28 @@ def random_rotation(key, anomalies, num_active=None):
     def reflect(matrix):
         return matrix - 2.0 * jnp.outer(direction, direction @ matrix)
 
-    size = num - 1  # Q acts on rows 1..N-1 of the reflected anomalies
-    gaussians_key, sign_key = jax.random.split(key)
-    gaussians = jax.random.normal(gaussians_key, (size, size), dtype)
-    signs = jnp.where(jax.random.bernoulli(sign_key, 0.5, (size,)), 1.0, -1.0).astype(dtype)
+    return reflect
 
-    block = count - 1  # Q acts on rows 1..block; padding rows beyond
+
+def _haar_rotate(key, rows, block):
+    """Q @ rows for ``rows[size, n]``, Q Haar on O(block) on the first ``block`` rows and the
+    identity on the rest (``block`` may be traced, 1 <= block <= size).
+
+    Stewart's (1980) algorithm: Q = H_0 H_1 ... H_{size-2} D, random Householder reflections
+    (reflection k acts on coordinates k..block-1; none from k = block - 1 on) and random signs.
+    The product is applied at once in the compact WY form H_0 ... H_{K-1} = I - U T^{-1} U^T,
+    T = I / 2 + striu(U^T U) (unit u_k; a zero u_k is the identity): a few matrix products and
+    one K x K triangular solve instead of K sequential rank-one updates (each a handful of XLA
+    CPU runtime ops). One normal draw of [size, size + 1] gives the Gaussians and, by the signs
+    of its last column, the random signs (one Threefry call instead of three).
+    """
+    size = rows.shape[0]
+    dtype = rows.dtype
+    draws = jax.random.normal(key, (size, size + 1), dtype)
+    gaussians = draws[:, :size]
+    signs = jnp.where(draws[:, size] >= 0, 1.0, -1.0).astype(dtype)
+    if size == 1:  # O(1): a random sign
+        return signs[:, None] * rows
 
     def stewart_factors(k):
         # Reflection k acts on coordinates k..block-1; its sign factor is -sign(x_k). From
@@ -319,15 +389,29 @@ def random_rotation(key, anomalies, num_active=None):
         length = jnp.where(in_use, jnp.linalg.norm(u), 1.0)
         return jnp.where(in_use, u / length, 0.0), jnp.where(in_use, -pivot_sign, signs[k])
 
-    ks = jnp.arange(size - 1)
-    vectors, reflection_signs = jax.vmap(stewart_factors)(ks)
+    vectors, reflection_signs = jax.vmap(stewart_factors)(jnp.arange(size - 1))  # [K, size]
     diagonal = signs.at[: size - 1].set(reflection_signs)
+    rows = diagonal[:, None] * rows
+    inverse_t = 0.5 * jnp.eye(size - 1, dtype=dtype) + jnp.triu(vectors @ vectors.T, 1)
+    coefficients = jax.scipy.linalg.solve_triangular(inverse_t, vectors @ rows, lower=False)
+    return rows - vectors.T @ coefficients
 
-    def apply_reflection(i, rows):
-        u = vectors[size - 2 - i]  # Q = H_0 H_1 ... H_{size-2} D: apply the last one first
-        return rows - 2.0 * jnp.outer(u, u @ rows)
 
+def random_rotation(key, anomalies, num_active=None):
+    """O A with O a Haar-random orthogonal matrix on the complement of the ones vector.
+
+    With ``num_active = k`` (rows k.. are padding, zero anomalies) O is the k x k such rotation
+    on the first k rows and the identity on the rest: the ones vector is that of the first k
+    rows and Q is Haar on O(k - 1) (all shapes keep the static size N).
+
+    The Householder reflection P (symmetric, orthogonal) maps e_1 to ones / sqrt(k), so
+    O = P diag(1, Q) P with Q Haar on O(k - 1) satisfies O 1 = 1. Q is Stewart's product of
+    random reflections (``_haar_rotate``): O(N^2 n), no LAPACK QR (a batched QR under vmap
+    deadlocked jaxlib's CPU thread pool for 256 simulations).
+    """
+    num = anomalies.shape[0]
+    count = num if num_active is None else num_active
+    reflect = _ones_reflection(num, count, anomalies.dtype)
     reflected = reflect(anomalies)
-    rows = diagonal[:, None] * reflected[1:]
-    rows = jax.lax.fori_loop(0, size - 1, apply_reflection, rows)
+    rows = _haar_rotate(key, reflected[1:], count - 1)
     return reflect(reflected.at[1:].set(rows))
