@@ -240,6 +240,15 @@ def model_dimensions(model: StateSpaceModel) -> tuple[int, int]:
             )
     if model.observation_noise_cov is not None:
         check_covariance("model.observation_noise_cov", model.observation_noise_cov, m, True)
+    geometry = model.geometry
+    if geometry is not None:
+        sizes = (jnp.shape(getattr(geometry, "state_positions", ()))[:1],
+                 jnp.shape(getattr(geometry, "observation_positions", ()))[:1])
+        if sizes != ((n,), (m,)):
+            raise ValueError(
+                f"model.geometry must place the {n} state coordinates and {m} observation "
+                f"components (a localisation.Geometry), got {sizes[0]} and {sizes[1]} positions"
+            )
     if model.log_likelihood is not None:
         value = jax.eval_shape(model.log_likelihood, y, x)
         if value.shape != ():

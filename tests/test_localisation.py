@@ -191,3 +191,11 @@ def test_localisation_rescues_a_small_ensemble_on_lorenz96():
     global_ = rmse(otf.enkf(inflation=1.04, perturbed=False, rotate=True))
     assert local < 0.3, local
     assert global_ > 1.0, global_
+
+
+def test_a_model_geometry_of_the_wrong_size_is_refused():
+    model = otf.models.lorenz96(dim=8)
+    wrong = model._replace(geometry=otf.ring(10))
+    _, observations = otf.simulate(jax.random.key(0), model, 3)
+    with pytest.raises(ValueError, match="model.geometry"):
+        otf.run_filter(jax.random.key(1), wrong, otf.enkf(), observations, 8)
