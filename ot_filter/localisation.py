@@ -98,8 +98,13 @@ def points(state_positions, observation_positions, period=None, metric: Callable
     dim = state.shape[1]
     if metric is not None and period is not None:
         raise ValueError("give period or metric, not both (a metric handles its own periodicity)")
-    period = np.full(dim, np.inf) if period is None else np.broadcast_to(
-        np.asarray(period, dtype=float), (dim,)).copy()
+    if period is None:
+        period = np.full(dim, np.inf)
+    else:
+        period = np.asarray(period, dtype=float)
+        if period.shape not in ((), (1,), (dim,)):
+            raise ValueError(f"period must be a number or have shape ({dim},), got {period.shape}")
+        period = np.broadcast_to(period, (dim,)).copy()
     if np.any(period <= 0):
         raise ValueError(f"period must be positive (inf: not periodic), got {period}")
     return Geometry(jnp.asarray(state), jnp.asarray(observations), jnp.asarray(period), metric)
@@ -123,7 +128,8 @@ def distances(geometry: Geometry, a: Array, b: Array) -> Array:
         return jax.vmap(lambda x: jax.vmap(lambda z: geometry.metric(x, z))(b))(a)
     gaps = jnp.abs(a[:, None, :] - b[None, :, :])
     period = jnp.asarray(geometry.period, gaps.dtype)
-    gaps = jnp.where(jnp.isfinite(period), jnp.minimum(gaps, period - gaps), gaps)
+    wrapped = jnp.mod(gaps, jnp.where(jnp.isfinite(period), period, 1.0))  # positions anywhere
+    gaps = jnp.where(jnp.isfinite(period), jnp.minimum(wrapped, period - wrapped), gaps)
     return jnp.sqrt(jnp.sum(gaps**2, axis=-1))
 
 
@@ -133,8 +139,9 @@ def taper_weights(distance: Array, radius, taper: str) -> Array:
         return jnp.where(distance <= radius, 1.0, 0.0).astype(jnp.result_type(distance, float))
     if taper != "gaspari_cohn":
         raise ValueError(f"taper must be one of {TAPERS}, got {taper!r}")
-    r = distance / (GASPARI_COHN_HALF_WIDTH * radius)  # distance / c, support r < 2
-    r = jnp.where(jnp.isfinite(r), r, 2.0)
+    # inf (padding) is replaced before the division, so that the gradient in radius is finite.
+    r = jnp.where(jnp.isfinite(distance), distance, 0.0) / (GASPARI_COHN_HALF_WIDTH * radius)
+    r = jnp.where(jnp.isfinite(distance), r, 2.0)  # distance / c, support r < 2
     inner = (((-0.25 * r + 0.5) * r + 0.625) * r - 5.0 / 3.0) * r**2 + 1.0
     outer = ((((r / 12.0 - 0.5) * r + 0.625) * r + 5.0 / 3.0) * r - 5.0) * r + 4.0 - 2.0 / (
         3.0 * jnp.maximum(r, 1.0))
@@ -187,6 +194,10 @@ def localisation(geometry: Geometry, radius, taper: str = "gaspari_cohn", max_ra
     if not isinstance(geometry, Geometry):
         raise TypeError(f"geometry must be a localisation.Geometry (e.g. model.geometry), got "
                         f"{type(geometry).__name__}")
+    if any(is_traced(leaf) for leaf in jax.tree.leaves(geometry)):
+        raise ValueError("localisation() needs a concrete geometry (its neighbour lists are built "
+                         "on the host): build it outside jit, or close over the model instead of "
+                         "passing it as a traced argument")
     if taper not in TAPERS:
         raise ValueError(f"taper must be one of {TAPERS}, got {taper!r}")
     radius = check_number("radius", radius, minimum=0.0, strict_minimum=True)

@@ -34,11 +34,12 @@ Array = jax.Array
 __all__ = ["StateSpaceModel", "colour_noise", "dense_noise_cov", "model_dimensions", "simulate", "whiten"]
 
 
-def check_covariance(name: str, matrix, size: int, positive_definite: bool) -> None:
+def check_covariance(name: str, matrix, size: int, positive_definite: bool,
+                     allow_diagonal: bool = False) -> None:
     """Raises ValueError (naming ``name``) unless ``matrix`` is a finite symmetric [size, size]
     positive (semi-)definite matrix, or a diagonal ``[size]`` of positive (non-negative) entries.
     Traced values (inside jit / vmap) are only shape-checked."""
-    if np.ndim(matrix) == 1:
+    if np.ndim(matrix) == 1 and allow_diagonal:
         if np.shape(matrix) != (size,):
             raise ValueError(f"{name} must have shape ({size},) or ({size}, {size}), got {np.shape(matrix)}")
         if isinstance(matrix, jax.core.Tracer):
@@ -77,8 +78,9 @@ class StateSpaceModel(NamedTuple):
         (needed by SIR; keep its normalising constant if you want SIR's marginal likelihood).
       observation_function: optional noiseless ``x[n] -> h(x)[m]`` for additive Gaussian noise.
       observation_noise_cov: optional ``R[m, m]`` for additive Gaussian noise, or ``R[m]``, its
-        diagonal (independent noise per component: the built-in models; no m x m matrix is
-        ever formed, which is what lets Lorenz-96 run at m = 40,000).
+        diagonal (independent noise per component: the built-in models; the square-root EnKF and
+        the LETKF then never form an m x m matrix, which is what lets Lorenz-96 run at
+        m = 40,000; the perturbed EnKF's gain is m x m whatever R).
       parameters: optional pytree of arrays a built-in model keeps (e.g. the matrices of a
         linear-Gaussian model for the exact Kalman filter).
       observation_noise_factors: optional ``(L, L^{-1})``, the Cholesky factor of R and its
@@ -239,7 +241,8 @@ def model_dimensions(model: StateSpaceModel) -> tuple[int, int]:
                 f"got {hx.shape}"
             )
     if model.observation_noise_cov is not None:
-        check_covariance("model.observation_noise_cov", model.observation_noise_cov, m, True)
+        check_covariance("model.observation_noise_cov", model.observation_noise_cov, m, True,
+                         allow_diagonal=True)
     geometry = model.geometry
     if geometry is not None:
         sizes = (jnp.shape(getattr(geometry, "state_positions", ()))[:1],

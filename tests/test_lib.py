@@ -53,6 +53,14 @@ def test_weighted_covariance_matches_numpy_and_collapses_to_equal_weights():
     np.testing.assert_allclose(
         ensemble.weighted_covariance(jnp.asarray(x), jnp.asarray(collapsed)), np.cov(x.T), rtol=1e-4
     )
+    # The variances alone (O(N n), what the filters' spread uses): the covariance's diagonal,
+    # with weights, padding (-inf) and a collapsed ensemble alike.
+    padded = np.log(w)
+    padded[40:] = -np.inf
+    for log_w in (np.log(w), padded, collapsed):
+        np.testing.assert_allclose(
+            ensemble.weighted_variance(jnp.asarray(x), jnp.asarray(log_w)),
+            np.diag(ensemble.weighted_covariance(jnp.asarray(x), jnp.asarray(log_w))), rtol=1e-6)
 
 
 def test_log_weight_normalisation_and_ess():

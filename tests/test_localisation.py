@@ -72,6 +72,12 @@ def test_neighbour_lists_match_brute_force_on_periodic_points():
     np.testing.assert_allclose(custom.neighbour_distances, loc.neighbour_distances, rtol=1e-6)
     with pytest.raises(ValueError, match="max_radius"):
         otf.localisation(geometry, 2.0, max_radius=1.0)
+    # Positions outside [0, period) are the same points.
+    shifted = otf.points(state + np.array([30.0, 0.0]), observations - np.array([10.0, 0.0]),
+                         period=[10.0, np.inf])
+    again = otf.localisation(shifted, 1.0, taper="step")
+    np.testing.assert_array_equal(again.neighbours, loc.neighbours)
+    np.testing.assert_allclose(again.neighbour_distances, loc.neighbour_distances, atol=1e-5)
 
 
 def _ensemble(seed, num, n, offset=2.0):
@@ -159,20 +165,60 @@ def test_schur_enkf_with_a_taper_of_one_is_the_global_perturbed_enkf(x64):
     model = otf.models.lorenz96(dim=10, observed=[1, 4, 5, 8])
     particles = _ensemble(4, 12, 10)
     y = jnp.asarray([0.5, -0.3, 1.2, 0.0])
-    everything = otf.localisation(model.geometry, 100.0, taper="step")
+    # Every coordinate and observation at one point: the taper is 1 everywhere.
+    everything = otf.localisation(otf.points(np.zeros(10), np.zeros(4)), 1.0)
     local = otf.enkf(inflation=1.02, localisation=everything)
     state = local.init(jax.random.key(0), particles, model)
     a, _, _ = local.apply(jax.random.key(5), state, particles, y, model)
     b, _, _ = otf.enkf(inflation=1.02).apply(jax.random.key(5), state, particles, y, model)
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
     # A short radius: coordinates out of every observation's reach do not move.
-    near = otf.localisation(model.geometry, 0.5, taper="step")
+    near = otf.localisation(model.geometry, 0.25)  # support 0.91: its own observation only
     c, _, _ = otf.enkf(inflation=1.0, localisation=near).apply(jax.random.key(5), state, particles, y, model)
     untouched = np.setdiff1d(np.arange(10), [1, 4, 5, 8])
     np.testing.assert_allclose(c[:, untouched], particles[:, untouched], rtol=0, atol=1e-12)
     assert not np.allclose(c[:, [1, 4, 5, 8]], particles[:, [1, 4, 5, 8]])
     with pytest.raises(ValueError, match="letkf"):
         otf.enkf(perturbed=False, localisation=near)
+    with pytest.raises(ValueError, match="gaspari_cohn"):  # the step taper's matrix is indefinite
+        otf.enkf(localisation=otf.localisation(model.geometry, 0.5, taper="step"))
+    with pytest.raises(ValueError, match="half the period"):
+        otf.enkf(localisation=otf.localisation(model.geometry, 2.0))
+
+
+def test_schur_enkf_gain_is_the_tapered_kalman_gain(x64):
+    # The perturbed update is X + (y - h(X) - V) K^T: two observations under the same key (same
+    # V) differ by (y1 - y2) K^T in every member, which recovers K exactly. It must be
+    # (rho_xy o C_xh) (rho_yy o C_hh + R)^{-1}, with the Gaspari-Cohn tapers of the ring.
+    n, observed, radius, std = 24, np.array([0, 3, 5, 9, 14, 20]), 1.5, 0.8
+    model = otf.models.lorenz96(dim=n, observed=observed, observation_noise_std=std)
+    particles = _ensemble(6, 15, n)
+    update = otf.enkf(localisation=otf.localisation(model.geometry, radius))
+    state = update.init(jax.random.key(0), particles, model)
+    y = jnp.asarray(np.random.default_rng(4).normal(size=observed.size))
+    first, _, _ = update.apply(jax.random.key(9), state, particles, y, model)
+    directions = np.eye(observed.size)
+    gain = np.stack([
+        np.asarray(update.apply(jax.random.key(9), state, particles, y + direction, model)[0] - first)[0]
+        for direction in directions], axis=1)  # [n, m]
+    x = np.asarray(particles)
+    anomalies = x - x.mean(axis=0)
+    hx = anomalies[:, observed]
+    cross = anomalies.T @ hx / (15 - 1)
+    cov = hx.T @ hx / (15 - 1)
+
+    def ring_distance(a, b):
+        gap = np.abs(a[:, None] - b[None, :]) % n
+        return np.minimum(gap, n - gap)
+
+    def gaspari_cohn(d):
+        return _gaspari_cohn_reference(d, GASPARI_COHN_HALF_WIDTH * radius)
+
+    rho_xy = gaspari_cohn(ring_distance(np.arange(n), observed).astype(float))
+    rho_yy = gaspari_cohn(ring_distance(observed, observed).astype(float))
+    expected = (rho_xy * cross) @ np.linalg.inv(rho_yy * cov + std**2 * np.eye(observed.size))
+    np.testing.assert_allclose(gain, expected, rtol=0, atol=1e-10)
+    assert np.any(rho_xy == 0) and np.any((rho_xy > 0) & (rho_xy < 1))
 
 
 @pytest.mark.slow

@@ -68,7 +68,7 @@ def test_kalman_with_nan_rows_equals_kalman_with_rows_deleted(x64):
     fixed = np.array(observations)
     fixed[:, ~observed] = np.nan
     deleted = otf.kalman_filter(linear_gaussian(*_delete_rows(parameters, observed)),
-                                np.nan_to_num(fixed[:, observed], nan=np.nan))
+                                fixed[:, observed])
     full = otf.kalman_filter(model, fixed)
     rows = np.all(np.isfinite(fixed[:, observed]), axis=1)
     assert rows.sum() > 10
@@ -84,7 +84,8 @@ def _ensemble(seed, num, n):
 # A simulator of correlated noise cannot keep the kept components' draws when rows are deleted,
 # so the simulation-based EnKF is checked with independent noise only.
 @pytest.mark.parametrize("update,correlated", [
-    ("sqrt", True), ("sqrt", False), ("perturbed", True), ("perturbed", False),
+    ("sqrt", True), ("sqrt", False), ("sqrt_rotate", True), ("sqrt_rotate", False),
+    ("perturbed", True), ("perturbed", False),
     ("simulated", False), ("sir", True), ("sir", False),
 ])
 def test_ensemble_update_with_trailing_nan_equals_deleted_rows(x64, update, correlated):
@@ -109,6 +110,7 @@ def test_ensemble_update_with_trailing_nan_equals_deleted_rows(x64, update, corr
                                    sample_observation=simulator(np.flatnonzero(observed)))
     builder = {
         "sqrt": lambda: otf.enkf(inflation=1.1, perturbed=False),
+        "sqrt_rotate": lambda: otf.enkf(inflation=1.1, perturbed=False, rotate=True),
         "perturbed": lambda: otf.enkf(inflation=1.1),
         "simulated": lambda: otf.enkf(inflation=1.1),
         "sir": lambda: otf.sir(ess_threshold=1.0),
@@ -124,7 +126,7 @@ def test_ensemble_update_with_trailing_nan_equals_deleted_rows(x64, update, corr
     np.testing.assert_allclose(posterior, reference, rtol=0, atol=1e-10)
     np.testing.assert_allclose(new_state.log_weights, reference_state.log_weights, atol=1e-10)
     # And the missing entries' values never matter: a different h there changes nothing.
-    if update in ("sqrt", "perturbed"):
+    if update in ("sqrt", "sqrt_rotate", "perturbed"):
         bump = jnp.where(jnp.asarray(observed), 0.0, 5.0)
         shifted = model._replace(
             observation_function=lambda x: parameters[2] @ x + bump * jnp.sin(x[0]))

@@ -174,7 +174,7 @@ def test_updates_reject_models_they_cannot_handle():
 
 
 @pytest.mark.long
-def testrandom_rotation_is_haar_on_the_complement_of_ones(x64):
+def test_random_rotation_is_haar_on_the_complement_of_ones(x64):
     """O = rotation(C) + 11^T/N for the centring matrix C. Checks O O^T = I and O 1 = 1, and for
     the block Q acting on the complement (in the basis of the Householder reflection P): the
     Haar moments E[Q] = 0, E[Q_ij^2] = 1/d, E[Q_ij^4] = 3/(d(d+2)), d = N - 1 (5 std errors)."""

@@ -18,6 +18,7 @@ __all__ = [
     "masked_mean_and_std",
     "mean_and_anomalies",
     "weighted_covariance",
+    "weighted_variance",
 ]
 
 
@@ -61,6 +62,20 @@ def weighted_covariance(particles: Array, log_weights: Array) -> Array:
     log-weight -inf (padding, ``updates.base``) get weight 0, also in that fallback, unless
     fewer than two particles are left (then all count, to stay finite).
     """
+    weights, anomalies, denominator = _weighted_anomalies(particles, log_weights)
+    covariance = jnp.einsum("...i,...ij,...ik->...jk", weights, anomalies, anomalies)
+    return covariance / denominator
+
+
+def weighted_variance(particles: Array, log_weights: Array) -> Array:
+    """The diagonal ``[..., n]`` of ``weighted_covariance``, in O(N n) (no n x n matrix)."""
+    weights, anomalies, denominator = _weighted_anomalies(particles, log_weights)
+    return jnp.einsum("...i,...ij->...j", weights, anomalies**2) / denominator[..., 0]
+
+
+def _weighted_anomalies(particles: Array, log_weights: Array):
+    """``(weights [..., N], anomalies [..., N, n], 1 - sum w^2 [..., 1, 1])`` of the
+    unbiased weighted second moments (``weighted_covariance``'s rules for collapse and padding)."""
     weights = jnp.exp(log_weights - jax.nn.logsumexp(log_weights, axis=-1, keepdims=True))
     eps = jnp.finfo(particles.dtype).eps
     collapsed = 1.0 - jnp.max(weights, axis=-1, keepdims=True) < 100 * eps
@@ -77,5 +92,4 @@ def weighted_covariance(particles: Array, log_weights: Array) -> Array:
     mean = jnp.einsum("...i,...ij->...j", weights, particles)
     anomalies = particles - mean[..., None, :]
     sum_squared = jnp.sum(weights**2, axis=-1)[..., None, None]
-    covariance = jnp.einsum("...i,...ij,...ik->...jk", weights, anomalies, anomalies)
-    return covariance / (1.0 - sum_squared)
+    return weights, anomalies, 1.0 - sum_squared

@@ -6,8 +6,10 @@
 
 ``apply`` maps prior particles (after propagation) and an observation ``y[m]`` to posterior
 particles. Components of y that are NaN are missing: ``apply`` must assimilate the others, with
-the result of the model whose observation has those components deleted (every built-in update
-does, with masks: a changing set of observed components does not recompile). ``run_filter``
+the result of the model whose observation has those components deleted (the Kalman filter, the
+EnKFs, the LETKF and SIR do, with masks: a changing set of observed components does not
+recompile; the OT update learns the map conditioned on the observed components, so it gives that
+result up to its training error). ``run_filter``
 never calls ``apply`` with every component missing. Every state is a NamedTuple with a ``log_weights[N]`` field, normalised
 (logsumexp = 0): the posterior is the weighted empirical measure
 ``sum_i exp(log_weights_i) delta_{X^i}`` (uniform except for SIR between resampling steps).

@@ -29,7 +29,7 @@ Random rotation (``rotate=True``, DAPPER's ``rot=True``): after the update the p
 are multiplied by a random orthogonal N x N matrix that fixes the vector of ones (so the mean and
 covariance are unchanged). It spreads the analysis over all members and stops the symmetric
 square root from building up outliers; on the Lorenz-63 benchmark with N = 10 it lowers the RMSE
-from about 0.71 to 0.58. It draws (N - 1)^2 normals and costs O(N^2 n): meant for small ensembles
+from about 0.71 to 0.58. It draws N (N - 1) normals and costs O(N^2 n): meant for small ensembles
 (N <= 4096).
 
 Padded particle axis (``updates.base``): particles of log-weight -inf in the state are padding;
@@ -50,6 +50,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ot_filter.lib.ensemble import masked_mean_and_anomalies
 from ot_filter.lib.gaussian import cholesky_gain
@@ -58,7 +59,14 @@ from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_number
 from ot_filter.lib.weights import active_mask, count_active, count_dependent
-from ot_filter.localisation import Localisation, distances, taper_weights
+from ot_filter.lib.validation import is_traced
+from ot_filter.localisation import (
+    GASPARI_COHN_HALF_WIDTH,
+    Localisation,
+    distances,
+    taper_support,
+    taper_weights,
+)
 from ot_filter.model import (
     StateSpaceModel,
     colour_noise,
@@ -80,7 +88,8 @@ class EnKFInfo(NamedTuple):
     # Conditioning of the matrix the update inverts: simulation-based, max/min eigenvalue of
     # Cov(Y) (inf if singular: the pseudo-inverse then drops the null directions); exact R, the
     # squared ratio of the extreme Cholesky diagonal entries of Cov(h) + R (a cheap lower bound);
-    # square root, max/min eigenvalue of I + S^T S (whitened, always finite).
+    # square root, max/min eigenvalue of I + S^T S (whitened, always finite); rotated square
+    # root, the squared ratio of the extreme diagonal entries of its Cholesky factor (a lower bound).
     innovation_condition: Array
 
 
@@ -113,6 +122,13 @@ def enkf(inflation: float = 1.0, perturbed: bool = True, rotate: bool = False,
         if not perturbed:
             raise ValueError("enkf(perturbed=False) does not localise: use ot_filter.letkf "
                              "(the local square-root filter) or enkf(perturbed=True, localisation=...)")
+        if localisation.taper != "gaspari_cohn":
+            # A Schur product keeps Cov(Y) positive semi-definite only with a positive-definite
+            # taper matrix: the step function's is indefinite (on a 40-site ring at radius 4, its
+            # smallest eigenvalue is -1.96), and Cholesky would fail.
+            raise ValueError("enkf(localisation=...) needs taper='gaspari_cohn' (the step taper's "
+                             "matrix is indefinite); letkf takes either")
+        _check_schur_support(localisation)
     settings = EnKFSettings(check_number("inflation", inflation, minimum=1.0), localisation)
     return BayesUpdate(
         uniform_weights_init,
@@ -133,6 +149,13 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
             "enkf(perturbed=False) needs a model with additive Gaussian observation noise: "
             "give model.observation_function and model.observation_noise_cov"
         )
+    if settings.localisation is not None:
+        geometry = settings.localisation.geometry
+        sizes = (geometry.state_positions.shape[0], geometry.observation_positions.shape[0])
+        if sizes != (particles.shape[1], observation.shape[0]):
+            raise ValueError(f"the localisation places {sizes[0]} state coordinates and {sizes[1]} "
+                             f"observations; the particles have {particles.shape[1]} and the "
+                             f"observation {observation.shape[0]}: build it from this model's geometry")
     update_key, rotation_key = jax.random.split(key)
     active = active_mask(state.log_weights)
     num_active = count_active(state.log_weights)
@@ -229,6 +252,21 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         innovation_cov, innovations.T, relative_cutoff=observation.shape[0] * eps
     )
     return particles + (cross_cov @ solved).T, condition
+
+
+def _check_schur_support(localisation):
+    """Gaspari-Cohn is positive definite in Euclidean space, but on a periodic axis only while its
+    support (2 c) stays within half the period (on a 40-site ring its matrix's smallest
+    eigenvalue is -0.05 at radius 8 and -0.74 at radius 12); a concrete radius is checked."""
+    if is_traced(localisation.radius):
+        return
+    period = np.asarray(localisation.geometry.period, dtype=float)
+    support = taper_support(float(localisation.radius), localisation.taper)
+    if np.any(np.isfinite(period) & (support > period / 2)):
+        raise ValueError(
+            f"the Gaspari-Cohn support 2 c = {support:.3g} exceeds half the period "
+            f"{period.min() / 2:.3g}: its Schur product is then not positive definite; use a "
+            f"smaller radius (at most {period.min() / (4 * GASPARI_COHN_HALF_WIDTH):.3g}) or letkf")
 
 
 def _schur_tapers(localisation, dtype):
@@ -346,7 +384,8 @@ def active_first(active):
 def _ones_reflection(num, count, dtype):
     """``reflect(M) = P M`` with P the Householder reflection (symmetric, orthogonal) that maps
     e_1 to the unit vector of ones on the first ``count`` of ``num`` rows (identity beyond)."""
-    inverse_sqrt = count_dependent(lambda c: 1.0 / jnp.sqrt(c), count, num)
+    # In the particles' dtype: an int count would make the ones vector float32 under x64.
+    inverse_sqrt = count_dependent(lambda c: 1.0 / jnp.sqrt(jnp.asarray(c, dtype)), count, num)
     ones = jnp.where(jnp.arange(num) < count, inverse_sqrt, 0.0)  # unit vector of active ones
     direction = jnp.zeros(num, dtype).at[0].set(1.0) - ones
     direction = direction / jnp.linalg.norm(direction)
@@ -373,7 +412,8 @@ def _haar_rotate(key, rows, block):
     dtype = rows.dtype
     draws = jax.random.normal(key, (size, size + 1), dtype)
     gaussians = draws[:, :size]
-    signs = jnp.where(draws[:, size] >= 0, 1.0, -1.0).astype(dtype)
+    # Random signs on the block only: rows beyond it (padding) keep the identity.
+    signs = jnp.where((draws[:, size] >= 0) | (jnp.arange(size) >= block), 1.0, -1.0).astype(dtype)
     if size == 1:  # O(1): a random sign
         return signs[:, None] * rows
 
