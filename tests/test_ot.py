@@ -260,7 +260,7 @@ def test_float64_particles_give_float64_posterior(x64):
 
 
 @pytest.mark.long
-def test_apply_checks_its_input_and_ignores_a_missing_observation():
+def test_apply_checks_its_input_and_handles_missing_components():
     update = otf.ot(num_iterations=5, concavity_points=0)
     particles = prior_particles(num=32)
     state = update.init(jax.random.key(0), particles, STATIC)
@@ -268,11 +268,17 @@ def test_apply_checks_its_input_and_ignores_a_missing_observation():
         update.apply(jax.random.key(1), state, particles, jnp.ones(1), STATIC)
     with pytest.raises(ValueError, match="particles must have shape"):
         update.apply(jax.random.key(1), state, particles[:, :1], jnp.ones(2), STATIC)
-    posterior, _, info = update.apply(jax.random.key(1), state, particles, jnp.array([jnp.nan, 1.0]), STATIC)
+    # Nothing observed: the particles stay.
+    posterior, _, info = update.apply(jax.random.key(1), state, particles, jnp.array([jnp.nan, jnp.nan]), STATIC)
     np.testing.assert_array_equal(posterior, particles)
     # Nothing in info is NaN (the concavity check is off: min over no points = +inf).
     assert not any(np.any(np.isnan(leaf)) for leaf in jax.tree.leaves(info))
     assert float(info.min_hessian_eigenvalue) == np.inf and float(info.concavity_violation) == 0.0
+    # One component missing: the other is assimilated (tests/test_partial_observations.py checks
+    # the posterior), and info stays finite.
+    posterior, _, info = update.apply(jax.random.key(1), state, particles, jnp.array([jnp.nan, 1.0]), STATIC)
+    assert np.all(np.isfinite(posterior)) and not np.array_equal(posterior, particles)
+    assert not any(np.any(np.isnan(leaf)) for leaf in jax.tree.leaves(info))
 
 
 def test_smoothed_prior_keeps_mean_and_correlated_covariance():
