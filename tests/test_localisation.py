@@ -221,7 +221,7 @@ def test_schur_enkf_gain_is_the_tapered_kalman_gain(x64):
     assert np.any(rho_xy == 0) and np.any((rho_xy > 0) & (rho_xy < 1))
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_localisation_rescues_a_small_ensemble_on_lorenz96():
     # N = 10 members for n = 40 unknowns: the global square-root EnKF cannot span the error and
     # loses the truth; the LETKF (DAPPER's Sakov 2008 tuning) tracks it below the noise (std 1).

@@ -150,7 +150,7 @@ def test_letkf_with_nan_equals_deleted_rows_for_any_missing_set(x64):
     assert not np.allclose(posterior, particles)
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_ot_update_with_a_missing_component_matches_the_deleted_rows_kalman_posterior():
     # x ~ N(0, I_2), y = x + noise (2 components), the second one missing: the posterior is that
     # of the first observation alone, x_0 | y_0 ~ N(0.8, 0.2), and x_1 ~ N(0, 1) unmoved.
