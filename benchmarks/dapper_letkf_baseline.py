@@ -74,7 +74,6 @@ with one list entry per seed; progress goes to stderr.
 from __future__ import annotations
 
 import argparse
-import ast
 import contextlib
 import json
 import os
@@ -85,24 +84,23 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 import numpy as np  # noqa: E402
 
-# DAPPER prints a live-plotting warning to stdout at import: keep stdout pure JSON.
-with contextlib.redirect_stdout(sys.stderr):
-    import dapper as dpr  # noqa: E402
-    import dapper.da_methods as da  # noqa: E402
+# The DAPPER set-up (quiet imports, no progress bars or live plots, the filter seed offset) and
+# the call-string parser are the Lorenz twin baseline's, in this folder.
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from dapper_baseline import (  # noqa: E402
+    FILTER_SEED_OFFSET,
+    dapper_method,
+    dpr,
+    progressbar,
+    rc,
+    set_seed,
+)
+
+with contextlib.redirect_stdout(sys.stderr):  # DAPPER's import-time warning stays off stdout
     import dapper.mods as modelling  # noqa: E402
-    import dapper.tools.progressbar as progressbar  # noqa: E402
-    from dapper.dpr_config import rc  # noqa: E402
     from dapper.mods.Lorenz96 import Force  # noqa: E402
     from dapper.mods.Lorenz96.sakov2008 import HMM as HMM_SAKOV2008  # noqa: E402
     from dapper.mods.Lorenz96.spantini2019 import HMM as HMM_SPANTINI2019  # noqa: E402
-    from dapper.tools.seeding import set_seed  # noqa: E402
-
-progressbar.disable_progbar = True
-progressbar.disable_user_interaction = True
-rc.liveplotting = False
-rc.store_u = False
-
-FILTER_SEED_OFFSET = 100_000  # filter seed = truth seed + offset: never reuses a truth seed
 
 SETTINGS = {  # name -> (DAPPER HMM, its model file)
     "sakov2008": (HMM_SAKOV2008, "dapper.mods.Lorenz96.sakov2008"),
@@ -111,17 +109,6 @@ SETTINGS = {  # name -> (DAPPER HMM, its model file)
 
 
 NPZ_ONLY = ("kko", "masko", "loc_batches", "x0_mean")  # metadata left out of the JSON
-
-
-def dapper_method(call: str):
-    """DAPPER's method from its call string, e.g. ``"LETKF(N=7, rot=True, infl=1.04, loc_rad=4)"``
-    (a ``dapper.da_methods`` name with literal arguments; parsed, not evaluated)."""
-    node = ast.parse(call, mode="eval").body
-    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)):
-        raise ValueError(f"not a DAPPER method call: {call!r}")
-    args = [ast.literal_eval(arg) for arg in node.args]
-    kwargs = {keyword.arg: ast.literal_eval(keyword.value) for keyword in node.keywords}
-    return getattr(da, node.func.id)(*args, **kwargs)
 
 
 def make_hmm(setting: str, obs_noise_var: float | None, Ko: int | None):

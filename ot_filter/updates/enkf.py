@@ -283,7 +283,7 @@ def _schur_tapers(localisation, dtype):
             taper(observations, observations).astype(dtype))
 
 
-def _whitened_observations(mean, anomalies, observation, model, active, num_active):
+def whitened_observations(mean, anomalies, observation, model, active, num_active):
     """``(S [N, m], d [m], over_scale)`` of the square-root updates: the whitened observation
     anomalies S = (h(X) - mean h) L^{-1} / sqrt(k - 1), the whitened innovation d and the
     division by sqrt(k - 1). Missing components (NaN) are zero columns of S and d, whitened with
@@ -321,7 +321,7 @@ def _square_root_update(mean, anomalies, observation, model, active, num_active)
     num_particles = anomalies.shape[0]
     m = observation.shape[0]
     observed = jnp.isfinite(observation)
-    whitened, innovation, over_scale = _whitened_observations(
+    whitened, innovation, over_scale = whitened_observations(
         mean, anomalies, observation, model, active, num_active
     )
     mean_weights, posterior_anomalies, s2 = etkf_transform(whitened, innovation, anomalies)
@@ -356,7 +356,7 @@ def _rotated_square_root_update(key, mean, anomalies, observation, model, active
     """
     num_particles = anomalies.shape[0]
     dtype = anomalies.dtype
-    whitened, innovation, over_scale = _whitened_observations(
+    whitened, innovation, over_scale = whitened_observations(
         mean, anomalies, observation, model, active, num_active
     )
     order = active_first(active)

@@ -35,11 +35,11 @@ from ot_filter.lib.ensemble import masked_mean_and_anomalies
 from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_int, check_number
-from ot_filter.lib.weights import active_mask, count_active, count_dependent
+from ot_filter.lib.weights import active_mask, count_active
 from ot_filter.localisation import Localisation
-from ot_filter.model import StateSpaceModel, observed_noise_factors, whiten
+from ot_filter.model import StateSpaceModel
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
-from ot_filter.updates.enkf import MAX_ROTATED_PARTICLES, random_rotation
+from ot_filter.updates.enkf import MAX_ROTATED_PARTICLES, random_rotation, whitened_observations
 
 Array = jax.Array
 
@@ -104,19 +104,9 @@ def letkf_apply(settings: LETKFSettings, key: Array, state: UniformWeightsState,
     num_active = count_active(state.log_weights)
     mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
     anomalies = settings.inflation * anomalies
-    predicted = jax.vmap(model.observation_function)(mean + anomalies)
-    predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
     observed = jnp.isfinite(observation)
-    factors = observed_noise_factors(model, observed, dtype)
-
-    def over_scale(value):  # / sqrt(k - 1)
-        return count_dependent(
-            lambda count: value / jnp.sqrt(jnp.asarray(count - 1, dtype)), num_active, num_particles
-        )
-
-    whitened = over_scale(jnp.where(observed, whiten(factors, predicted_anomalies), 0.0))  # S
-    residual = jnp.where(observed, observation - predicted_mean, 0.0)
-    innovation = jnp.where(observed, whiten(factors, residual), 0.0)  # d [m]
+    whitened, innovation, over_scale = whitened_observations(  # S [N, m], d [m]
+        mean, anomalies, observation, model, active, num_active)
     weights = localisation.weights().astype(dtype) * observed[localisation.neighbours]  # [n, K]
 
     def analyse(inputs):
