@@ -1,14 +1,15 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``ot``); ``localisation``
-describes where the state and observations lie (``ring``, ``points``) and builds the taper; ``run_filter`` composes them into a
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``ot``, ``local_ot``);
+``localisation`` describes where the state and observations lie (``ring``, ``points``) and builds
+the taper and the local windows; ``run_filter`` composes them into a
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference. ``continuous`` holds the continuous-time part
 (``SDEModel``, Kalman-Bucy, the feedback particle filter and its gains).
 """
 
 from ot_filter import continuous, metrics, models, reference
-from ot_filter.localisation import Geometry, Localisation, localisation, points, ring
+from ot_filter.localisation import Geometry, LocalWindows, Localisation, local_windows, localisation, points, ring
 from ot_filter.continuous import SDEModel
 from ot_filter.filtering import FilterResult, run_filter
 from ot_filter.kalman import KalmanResult, kalman_filter
@@ -25,6 +26,7 @@ from ot_filter.updates import (
     SIRState,
     enkf,
     letkf,
+    local_ot,
     ot,
     resample_indices,
     sir,
@@ -39,6 +41,7 @@ __all__ = [
     "Geometry",
     "KalmanResult",
     "LETKFInfo",
+    "LocalWindows",
     "Localisation",
     "OTInfo",
     "OTState",
@@ -51,6 +54,8 @@ __all__ = [
     "enkf",
     "kalman_filter",
     "letkf",
+    "local_ot",
+    "local_windows",
     "localisation",
     "metrics",
     "models",

@@ -25,6 +25,12 @@ Tapers, with r = distance / radius:
   ``loc_rad``), so the radii are interchangeable to 0.3 %.
 - ``step``: 1 within ``radius``, 0 beyond.
 
+Local windows (``local_windows``) serve updates that learn ONE map shared by all coordinates
+(the localised OT update): each state coordinate's state neighbours and observations within a
+radius, in an order that means the same relative position for every coordinate (nearest first,
+ties by signed displacement), so that slot k of a window is "the same place" everywhere on a
+lattice.
+
 The LETKF uses the neighbour lists (O(n K) work, K the most observations within reach of one
 coordinate); the Schur-product EnKF uses dense taper matrices from the positions (O(n m + m^2)
 memory: for m up to a few thousand).
@@ -34,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -49,7 +55,9 @@ __all__ = [
     "Geometry",
     "Localisation",
     "TAPERS",
+    "LocalWindows",
     "distances",
+    "local_windows",
     "localisation",
     "points",
     "ring",
@@ -245,3 +253,76 @@ def _neighbour_lists(geometry: Geometry, cutoff: float, chunk: int = 512):
         indices.append(block_indices)
         values.append(block_values)
     return np.concatenate(indices), np.concatenate(values)
+
+
+class LocalWindows(NamedTuple):
+    """Each state coordinate's local window (host-built, concrete arrays).
+
+    Attributes:
+      state: ``[n, S]`` int, the state coordinates within ``state_radius``, the coordinate itself
+        first; padded with its own index.
+      state_valid: ``[n, S]`` bool, False on padding.
+      observations: ``[n, K]`` int, the observation components within ``radius``; padded with 0.
+      observations_valid: ``[n, K]`` bool, False on padding.
+    """
+
+    state: Array
+    state_valid: Array
+    observations: Array
+    observations_valid: Array
+
+
+def local_windows(geometry: Geometry, radius: float, state_radius: float = 0.0) -> LocalWindows:
+    """The windows of every state coordinate: observations within ``radius`` and state coordinates
+    within ``state_radius`` (distances of ``geometry``; both static Python numbers, >= 0).
+
+    Order within a window: distance, then (the coordinate itself first) the signed displacement
+    (wrapped into [-period/2, period/2) on periodic axes), then the index; with a user metric,
+    distance then index. On a lattice every coordinate's slot k then sits at the same offset.
+    """
+    if not isinstance(geometry, Geometry):
+        raise TypeError(f"geometry must be a localisation.Geometry (e.g. model.geometry), got "
+                        f"{type(geometry).__name__}")
+    radius = float(check_number("radius", radius, minimum=0.0))
+    state_radius = float(check_number("state_radius", state_radius, minimum=0.0))
+    with jax.ensure_compile_time_eval():
+        state = np.asarray(geometry.state_positions, np.float64)
+        observations = np.asarray(geometry.observation_positions, np.float64)
+        state_index, state_valid = _ordered_window(geometry, state, state, state_radius, self_first=True)
+        obs_index, obs_valid = _ordered_window(geometry, state, observations, radius, self_first=False)
+    return LocalWindows(jnp.asarray(state_index), jnp.asarray(state_valid),
+                        jnp.asarray(obs_index), jnp.asarray(obs_valid))
+
+
+def _ordered_window(geometry, centres, targets, cutoff, self_first, chunk: int = 512):
+    """``(indices [p, K], valid [p, K])`` of the targets within ``cutoff`` of each centre, in the
+    order of ``local_windows``; padding repeats the centre's own index (state) or 0."""
+    compute = jax.jit(lambda a: distances(geometry, a, jnp.asarray(targets)))
+    period = np.asarray(geometry.period, np.float64)
+    rows = []
+    for start in range(0, centres.shape[0], chunk):
+        block = np.asarray(compute(jnp.asarray(centres[start:start + chunk])), np.float64)
+        # Round so that lattice ties compare equal despite float noise in the positions.
+        block = np.round(block, 9)
+        for local, row in enumerate(block):
+            centre = start + local
+            found = np.nonzero(row <= cutoff + 1e-9)[0]
+            keys = [found]
+            if geometry.metric is None:
+                shift = targets[found] - centres[centre]
+                periodic = np.isfinite(period)
+                finite_period = np.where(periodic, period, 1.0)
+                wrapped = np.mod(shift + finite_period / 2, finite_period) - finite_period / 2
+                shift = np.round(np.where(periodic, wrapped, shift), 9)
+                keys += [shift[:, axis] for axis in reversed(range(shift.shape[1]))]
+            keys.append(found != centre if self_first else np.zeros(found.size, bool))
+            keys.append(row[found])
+            rows.append(found[np.lexsort(keys)])
+    width = max(1, max(len(row) for row in rows))
+    indices = np.zeros((len(rows), width), np.int32)
+    valid = np.zeros((len(rows), width), bool)
+    for centre, row in enumerate(rows):
+        indices[centre, :] = centre if self_first else 0
+        indices[centre, :len(row)] = row
+        valid[centre, :len(row)] = True
+    return indices, valid

@@ -34,10 +34,10 @@ import numpy as np
 import optax
 
 from ot_filter.experiments._common import (
-    METHODS, compile_and_run, make_updates, save_figure, simulate_truths, stats,
+    ALL_METHODS, METHODS, compile_and_run, make_updates, save_figure, simulate_truths, stats,
 )
 from ot_filter.filtering import run_filter
-from ot_filter.metrics import mmd, mmd_to_product
+from ot_filter.metrics import compare_to_product_grid, mmd, mmd_to_product, product_grid_sample
 from ot_filter.models import squared_observation
 from ot_filter.reference import squared_observation_filter
 from ot_filter.updates import sir
@@ -144,6 +144,40 @@ def _mmd_to_samples(particles, log_weights, samples, bandwidth):
     return jax.vmap(lambda a, w, b: mmd(a, b, bandwidth, x_weights=jnp.exp(w)))(particles, log_weights, samples)
 
 
+def exact_comparison(key, particles, log_weights, reference) -> dict:
+    """The honest metrics (``metrics.compare_to_product_grid``) of weighted particles
+    ``[S, T, N, n]`` against the exact posterior (masses ``[S, n, T, G]``), and the same metrics of
+    N exact samples (the Monte-Carlo floor): ``{"w1": [S, T, n], "sliced_w2": [S, T],
+    "energy": [S, T], "floor_w1": ..., "floor_sliced_w2": ..., "floor_energy": ...}``."""
+    num_simulations, num_steps = particles.shape[:2]
+    grid = jnp.asarray(reference.grid[0] if reference.grid.ndim > 1 else reference.grid)
+    masses = jnp.swapaxes(jnp.asarray(reference.masses), 1, 2)  # [S, T, n, G]
+    flat = jax.tree.map(
+        lambda a: jnp.reshape(a, (num_simulations * num_steps,) + a.shape[2:]),
+        (jnp.asarray(particles), jnp.asarray(log_weights), masses),
+    )
+    keys = jax.random.split(key, num_simulations * num_steps)
+    values = _exact_comparison_flat(keys, *flat, grid)
+    return {name: np.asarray(value).reshape((num_simulations, num_steps) + value.shape[1:])
+            for name, value in values.items()}
+
+
+@jax.jit
+def _exact_comparison_flat(keys, particles, log_weights, masses, grid):
+    def one(args):
+        key, x, lw, p = args
+        floor_key, compare_key = jax.random.split(key)
+        num = x.shape[0]
+        found = compare_to_product_grid(compare_key, x, jnp.exp(lw), grid, p, num)
+        # N exact samples against the same exact reference sample: the floor at this N.
+        floor = compare_to_product_grid(compare_key, product_grid_sample(floor_key, grid, p, num), None,
+                                        grid, p, num)
+        return {"w1": found.w1, "sliced_w2": found.sliced_w2, "energy": found.energy,
+                "floor_w1": floor.w1, "floor_sliced_w2": floor.sliced_w2, "floor_energy": floor.energy}
+
+    return jax.lax.map(one, (keys, particles, log_weights, masses), batch_size=MMD_BATCH)
+
+
 def positive_mass(particles, log_weights) -> np.ndarray:
     """``[..., n]``: each coordinate's filter mass on x > 0 (exact posterior: 1/2)."""
     weights = np.exp(np.asarray(log_weights, np.float64))
@@ -156,6 +190,19 @@ def exact_positive_mass(reference) -> np.ndarray:
     centre = np.abs(grid) < 0.5 * (grid[1] - grid[0])  # the node at 0 (up to rounding)
     side = np.where(centre, 0.5, np.where(grid > 0, 1.0, 0.0))
     return np.swapaxes(np.asarray(reference.masses, np.float64) @ side, 1, 2)
+
+
+def _exact_summary(comparison: dict, first_step: int, prefix: str = "") -> dict:
+    """Time averages over t >= the first averaged step, as stats over simulations: W1 averaged
+    over coordinates (and its worst coordinate), sliced W2 and energy distance."""
+    w1 = comparison[prefix + "w1"][:, first_step:]  # [S, T', n]
+    return {
+        "w1": stats(w1.mean(axis=(1, 2))),
+        "w1_per_simulation": w1.mean(axis=(1, 2)).round(4).tolist(),
+        "w1_max": stats(w1.mean(axis=1).max(axis=1)),  # worst coordinate's time average
+        "sliced_w2": stats(comparison[prefix + "sliced_w2"][:, first_step:].mean(axis=1)),
+        "energy": stats(comparison[prefix + "energy"][:, first_step:].mean(axis=1)),
+    }
 
 
 def _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, info=None):
@@ -212,8 +259,10 @@ def run_dynamic_example(
     if num_steps < 1 or num_simulations < 1:
         raise ValueError("num_steps and num_simulations must be >= 1")
     model = dynamic_model(dim)
-    updates = make_updates(methods, ot_options, OT_FILTER_OPTIONS)
+    # Localised methods are told that the coordinates are independent (radius 0: own y only).
+    updates = make_updates(methods, ot_options, OT_FILTER_OPTIONS, model=model, radius=0.0)
     truth_key, filter_key, reference_key = jax.random.split(key, 3)
+    compare_key = jax.random.fold_in(reference_key, 1)
     states, observations = simulate_truths(truth_key, model, num_steps, num_simulations)
     reference = exact_posteriors(observations)
     exact_positive = exact_positive_mass(reference)
@@ -238,6 +287,10 @@ def run_dynamic_example(
         distances = mmd_to_exact(particles, log_weights, reference, bandwidth, standardise)
         positive = positive_mass(particles, log_weights)
         summary[name] = _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, info)
+        comparison = exact_comparison(compare_key, particles, log_weights, reference)
+        summary[name]["exact"] = _exact_summary(comparison, first_step)
+        summary["floor"] = _exact_summary(comparison, first_step, prefix="floor_")
+        arrays[f"{name}_w1"] = comparison["w1"].mean(axis=2)  # [S, T], over coordinates
         arrays[f"{name}_particles"] = particles[:keep]
         arrays[f"{name}_log_weights"] = log_weights[:keep]
         arrays[f"{name}_mmd"] = distances
@@ -413,7 +466,7 @@ def plot_dynamic_example(result: dict, out_dir: str, tag: str = "") -> list[str]
     and MMD vs time with standard-error bands. Returns the paths of the PNGs."""
     plt = _plt()
     summary, arrays = result["metrics"], result.get("arrays")  # no arrays: the MMD figure only
-    methods = [m for m in METHODS if m in summary]
+    methods = [m for m in ALL_METHODS if m in summary]
     tag = tag or f"n{summary['dim']}_N{summary['num_particles']}"
     times = TIME_STEP * np.arange(1, summary["num_steps"] + 1)
     paths = []
@@ -467,7 +520,7 @@ def plot_sweep(result: dict, out_dir: str) -> str:
     by_dim = "dims" in summary
     xs = summary["dims"] if by_dim else summary["counts"]
     fig, ax = plt.subplots(figsize=(6.0, 4.2))
-    methods = [m for m in METHODS if m in summary["results"][str(xs[0])]]
+    methods = [m for m in ALL_METHODS if m in summary["results"][str(xs[0])]]
     for name in methods:
         mean = [summary["results"][str(x)][name]["mmd_average"]["mean"] for x in xs]
         err = [summary["results"][str(x)][name]["mmd_average"]["stderr"] for x in xs]

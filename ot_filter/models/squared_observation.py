@@ -11,14 +11,17 @@ Dynamic example (chapter, eq. model-example):
 
 Observing x^2 loses the sign, so every coordinate's posterior has two mirror-image modes at
 +-sqrt(y / scale): EnKF cannot represent them, SIR collapses onto one in high dimension.
-Coordinates are independent, so exact posteriors factorise into 1-D ones.
+Coordinates are independent, so exact posteriors factorise into 1-D ones. The model carries a
+geometry (coordinate i and component i at position i on a line) for localised updates.
 """
 
 from __future__ import annotations
 
 import jax
+import numpy as np
 
 from ot_filter.lib.static import bind
+from ot_filter.localisation import points
 from ot_filter.lib.validation import check_number, is_traced
 from ot_filter.model import StateSpaceModel
 from ot_filter.models._gaussian_observation import (
@@ -63,6 +66,9 @@ def squared_observation(
         bind(_observation_function, scale),
         dim,
         noise,
+        # Component i observes coordinate i: positions on a line (localised updates with radius
+        # 0 then treat the coordinates as the independent problems they are).
+        geometry=points(np.arange(dim), np.arange(dim)),
     )
 
 

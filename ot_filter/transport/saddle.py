@@ -74,6 +74,8 @@ class Batch(NamedTuple):
     y: Array  # [B, m]  Y^i of the joint pairs
     xbar: Array  # [B, n]  independent copies Xbar^j
     ybar: Array  # [B, m]  the observations simulated from Xbar^j (used by the EnKF layer only)
+    gain: Array | None = None  # [B, n, m] per-pair EnKF-layer gains (the localised update);
+    #                            None: the layer, if on, estimates one gain from the batch
 
 
 def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
@@ -96,9 +98,12 @@ def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
 
 
 def transport_input(xbar: Array, y: Array, ybar: Array, gain: Array | None) -> Array:
-    """The EnKF layer x_e = xbar + K (y - ybar), or xbar itself without it."""
+    """The EnKF layer x_e = xbar + K (y - ybar), or xbar itself without it; ``gain[n, m]`` shared
+    by the rows, or ``gain[B, n, m]`` one per row."""
     if gain is None:
         return xbar
+    if gain.ndim == 3:
+        return xbar + jnp.einsum("bnm,bm->bn", gain, y - ybar)
     return xbar + (y - ybar) @ gain.T
 
 
@@ -148,7 +153,9 @@ def train_saddle(
     def outer(iteration, carry):
         state, loss, smoothed, finite = carry
         batch = sample_batch(jax.random.fold_in(key, iteration))
-        gain = enkf_gain(batch.x, batch.y) if enkf_layer else None
+        gain = batch.gain
+        if gain is None and enkf_layer:
+            gain = enkf_gain(batch.x, batch.y)
         params = state.params
 
         def inner(_, inner_carry):

@@ -9,6 +9,7 @@ from ot_filter.updates.base import (
 )
 from ot_filter.updates.enkf import EnKFInfo, EnKFSettings, enkf
 from ot_filter.updates.letkf import LETKFInfo, LETKFSettings, letkf
+from ot_filter.updates.local_ot import LocalOTSettings, LocalOTState, LocalOTUpdate, local_ot
 from ot_filter.updates.ot import OTInfo, OTSettings, OTState, OTStructure, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
 from ot_filter.updates.sir import SIRInfo, SIRSettings, SIRState, sir
@@ -19,6 +20,9 @@ __all__ = [
     "EnKFSettings",
     "LETKFInfo",
     "LETKFSettings",
+    "LocalOTSettings",
+    "LocalOTState",
+    "LocalOTUpdate",
     "OTInfo",
     "OTSettings",
     "OTState",
@@ -33,6 +37,7 @@ __all__ = [
     "count_active",
     "enkf",
     "letkf",
+    "local_ot",
     "ot",
     "resample_indices",
     "sir",

@@ -217,6 +217,32 @@ def ot(
         (0: train on the particles themselves; a concrete 0 compiles no smoothing); h is capped
         at 0.9 (shrinkage sqrt(1 - h^2)).
     """
+    settings, structure = recipe(
+        num_iterations=num_iterations, batch_size=batch_size, inner_steps=inner_steps, width=width,
+        num_blocks=num_blocks, activation=activation, enkf_layer=enkf_layer,
+        potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
+        warm_start=warm_start, divergence_threshold=divergence_threshold,
+        concavity_points=concavity_points, concavity_step=concavity_step,
+        prior_smoothing=prior_smoothing, fresh_observations=fresh_observations,
+        potential_learning_rate=potential_learning_rate,
+        potential_weight_decay=potential_weight_decay,
+        transport_learning_rate=transport_learning_rate,
+    )
+    return OTUpdate(
+        init=bind(ot_init, settings, structure=structure),
+        apply=bind(ot_apply, settings, structure=structure),
+        transport=bind(ot_transport, structure=structure),
+        potential=bind(ot_potential, structure=structure),
+    )
+
+
+def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activation, enkf_layer,
+           potential_optimizer, transport_optimizer, warm_start, divergence_threshold,
+           concavity_points, concavity_step, prior_smoothing, fresh_observations,
+           potential_learning_rate, potential_weight_decay, transport_learning_rate,
+           ) -> tuple[OTSettings, OTStructure]:
+    """Validates ``ot()``'s arguments (also ``local_ot()``'s): the traced numbers and the static
+    structure."""
     if isinstance(num_iterations, tuple):
         if len(num_iterations) != 2:
             raise ValueError(f"num_iterations must be an int or (first, floor), got {num_iterations!r}")
@@ -259,12 +285,7 @@ def ot(
         potential_optimizer=potential_optimizer,
         transport_optimizer=transport_optimizer,
     )
-    return OTUpdate(
-        init=bind(ot_init, settings, structure=structure),
-        apply=bind(ot_apply, settings, structure=structure),
-        transport=bind(ot_transport, structure=structure),
-        potential=bind(ot_potential, structure=structure),
-    )
+    return settings, structure
 
 
 # ---- the steps the recipe binds ----
@@ -431,12 +452,12 @@ def _apply(settings, key, state, particles, observation, model, structure):
     )
     info = OTInfo(
         loss=trace.loss,
-        final_loss=_not_nan(trace.smoothed_loss),
+        final_loss=finite_or_inf(trace.smoothed_loss),
         diverged=diverged,
-        min_hessian_eigenvalue=_not_nan(min_eigenvalue),
-        concavity_violation=_not_nan(violation),
-        potential_spread=_not_nan(masked_mean_and_std(potential_values[:, None], active)[1][0]),
-        predictive_z=_not_nan(z),
+        min_hessian_eigenvalue=finite_or_inf(min_eigenvalue),
+        concavity_violation=finite_or_inf(violation),
+        potential_spread=finite_or_inf(masked_mean_and_std(potential_values[:, None], active)[1][0]),
+        predictive_z=finite_or_inf(z),
     )
     return posterior, state, info
 
@@ -507,5 +528,5 @@ def ot_potential(state: OTState, x: Array, y: Array, *, structure: OTStructure) 
     return potential_net.apply(state.training.params.potential, scaling.standardise_x(x), scaling.standardise_y(y))
 
 
-def _not_nan(value: Array) -> Array:
+def finite_or_inf(value: Array) -> Array:
     return jnp.where(jnp.isnan(value), jnp.inf, value)
