@@ -17,7 +17,7 @@ from ot_filter.localisation import local_windows, points, ring
 from ot_filter.models import squared_observation
 from ot_filter.reference import squared_observation_posterior
 from ot_filter.transport.saddle import enkf_gain, transport_input
-from ot_filter.updates.local_ot import _local_data, _move, local_ot
+from ot_filter.updates.local_ot import LocalOTSettings, _local_data, _move, local_ot, local_prior_quantiles
 
 
 def test_windows_match_brute_force_and_mean_the_same_offsets_on_a_ring():
@@ -63,6 +63,10 @@ def test_per_row_gains_equal_one_gain_per_row():
     np.testing.assert_allclose(transport_input(xbar, y, ybar, gains), expected, rtol=1e-6, atol=1e-6)
 
 
+def _numbers(windows, levels=0):
+    return LocalOTSettings(None, windows, (jnp.arange(levels) + 0.5) / max(levels, 1))
+
+
 def _ring_data(key, num, size, observed, radius, state_radius):
     geometry = ring(size, observed)
     windows = local_windows(geometry, radius, state_radius)
@@ -78,7 +82,7 @@ def test_local_enkf_layer_is_the_per_coordinate_perturbed_enkf(x64):
     num, size, observed = 50, 10, np.arange(0, 10, 2)
     windows, xs, ys, y = _ring_data(jax.random.PRNGKey(2), num, size, observed, 2.0, 1.0)
     active = jnp.ones(num, bool)
-    data = _local_data(windows, xs, ys, y, jnp.ones(len(observed), bool), active)
+    data = _local_data(_numbers(windows), xs, ys, y, jnp.ones(len(observed), bool), active)
     moved = np.asarray(_move(data, None, True))
     X, Y = np.asarray(xs), np.asarray(ys)
     for i in range(size):
@@ -95,7 +99,7 @@ def test_local_enkf_layer_is_the_per_coordinate_perturbed_enkf(x64):
 def test_a_window_over_everything_has_the_global_gain(x64):
     num, size, observed = 40, 6, np.arange(6)
     windows, xs, ys, y = _ring_data(jax.random.PRNGKey(3), num, size, observed, 10.0, 10.0)
-    data = _local_data(windows, xs, ys, y, jnp.ones(size, bool), jnp.ones(num, bool))
+    data = _local_data(_numbers(windows), xs, ys, y, jnp.ones(size, bool), jnp.ones(num, bool))
     global_gain = enkf_gain(xs, ys)  # [n, m]
     for i in range(size):
         state, near = np.asarray(windows.state[i]), np.asarray(windows.observations[i])
@@ -114,6 +118,22 @@ def _static_problem(dim, num=1000, seed=0):
     return model, prior, exact.grid, masses
 
 
+def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain(x64):
+    num, size, observed = 60, 8, np.arange(8)
+    windows, xs, ys, y = _ring_data(jax.random.PRNGKey(4), num, size, observed, 1.0, 1.0)
+    active = jnp.arange(num) < 50  # padding rows do not count
+    levels = 4
+    quantiles = np.asarray(local_prior_quantiles(xs, active, (jnp.arange(levels) + 0.5) / levels))
+    ordered = np.sort(np.asarray(xs)[:50], axis=0)
+    np.testing.assert_array_equal(quantiles, ordered[np.floor((np.arange(levels) + 0.5) / levels * 50).astype(int)].T)
+    data = _local_data(_numbers(windows, levels), xs, ys, y, jnp.ones(size, bool), active)
+    reach, window = windows.observations.shape[1], windows.state.shape[1]
+    context = np.asarray(data.y)[:, :, 2 * reach:]  # [N, n, S Q]
+    np.testing.assert_array_equal(context, np.broadcast_to(context[0], context.shape))  # one per coordinate
+    np.testing.assert_array_equal(context[0].reshape(size, window, levels), quantiles[np.asarray(windows.state)])
+    np.testing.assert_allclose(np.asarray(data.gain)[:, :, 2 * reach:], 0.0, atol=1e-10)
+
+
 def test_divergence_falls_back_to_the_local_enkf():
     model, prior, _, _ = _static_problem(3, num=200)
     update = local_ot(local_windows(model.geometry, 0.0), num_iterations=20, divergence_threshold=1e-9)
@@ -124,7 +144,7 @@ def test_divergence_falls_back_to_the_local_enkf():
     # The fallback is the layer alone with the update's own simulated observations.
     scaling = state.standardisation
     observed = jnp.ones(3, bool)
-    data = _local_data(local_windows(model.geometry, 0.0), scaling.standardise_x(prior),
+    data = _local_data(_numbers(local_windows(model.geometry, 0.0)), scaling.standardise_x(prior),
                        scaling.standardise_y(state.simulated_observations), scaling.standardise_y(jnp.ones(3)),
                        observed, jnp.ones(200, bool))
     np.testing.assert_allclose(posterior, scaling.restore_x(_move(data, None, True)), rtol=1e-5, atol=1e-5)

@@ -347,3 +347,45 @@ def test_halving_iteration_schedule_in_a_filter():
     assert int(result.final_state.training.transport_opt_state[0].count) == 10 * 18
     with pytest.raises(ValueError, match="floor <= first"):
         otf.ot(num_iterations=(4, 8))
+
+
+def test_innovation_trend_is_the_moving_average_of_the_normalised_innovation():
+    from ot_filter.transport.divergence import TREND_SMOOTHING, innovation_trend
+
+    simulated = jax.random.normal(jax.random.key(0), (200, 3)) * jnp.array([1.0, 2.0, 0.5]) + 1.0
+    observation = jnp.array([2.0, jnp.nan, -1.0])  # the second component missing
+    active = jnp.arange(200) < 150  # padding rows do not count
+    s = np.asarray(simulated[:150], np.float64)
+    mean, var = s.mean(0), s.var(0)  # population variance, as the standardisation
+    value = np.mean([(2.0 - mean[0]) ** 2 / var[0], (-1.0 - mean[2]) ** 2 / var[2]])
+    got = innovation_trend(jnp.asarray(3.0), simulated, observation, active)
+    np.testing.assert_allclose(got, TREND_SMOOTHING * 3.0 + (1 - TREND_SMOOTHING) * value, rtol=1e-4)
+    # Nothing observed: the average stays.
+    assert float(innovation_trend(jnp.asarray(3.0), simulated, jnp.full(3, jnp.nan), active)) == 3.0
+
+
+def test_a_filter_that_lost_track_skips_training_and_uses_the_enkf_until_the_trend_comes_down():
+    # After updates whose innovations were large (the state's moving average 50 > 10), even a
+    # plausible observation leaves the average above the threshold: no training, the EnKF
+    # fallback, fresh networks and the iteration schedule restarted. The same step with a
+    # healthy history trains.
+    model = otf.models.squared_observation(dim=2)
+    particles = 3.0 + 0.05 * jax.random.normal(jax.random.key(0), (64, 2))
+    y = jnp.array([9.0, 9.0])  # x^2 at the particles
+    update = otf.ot(num_iterations=(32, 8), concavity_points=0)
+    state = update.init(jax.random.key(1), particles, model)._replace(num_updates=jnp.asarray(3))
+    lost = state._replace(innovation_trend=jnp.asarray(50.0))
+    posterior, after, info = update.apply(jax.random.key(2), lost, particles, y, model)
+    assert bool(info.diverged) and float(info.innovation_trend) > 10
+    assert int(after.training.transport_opt_state[0].count) == 0  # nothing trained
+    assert int(after.num_updates) == 0  # the next training gets the full first budget
+    from ot_filter.updates.base import UniformWeightsState
+    from ot_filter.updates.enkf import EnKFSettings, enkf_apply
+
+    fallback_key = jax.random.split(jax.random.key(2), 4)[2]
+    expected, _, _ = enkf_apply(EnKFSettings(1.0), fallback_key, UniformWeightsState(state.log_weights),
+                                particles, y, model, perturbed=True, rotate=False)
+    np.testing.assert_allclose(posterior, expected, rtol=1e-6, atol=1e-6)
+    _, healthy, healthy_info = update.apply(jax.random.key(2), state, particles, y, model)
+    assert int(healthy.training.transport_opt_state[0].count) == 8 * 10  # floor of the schedule at update 3
+    assert float(healthy_info.innovation_trend) < float(info.innovation_trend)

@@ -5,6 +5,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ot_filter.lib.ensemble import masked_mean_and_std
+
 from ot_filter.lib.weights import active_mask, uniform_log_weights
 from ot_filter.transport import batches, divergence, standardisation
 from ot_filter.updates.ot import iteration_budget
@@ -68,8 +70,12 @@ def test_predictive_z_and_each_divergence_condition():
     assert not bool(divergence.diverged(**healthy))
     for change in (dict(trace_finite=jnp.array(False)), dict(smoothed_loss=jnp.asarray(25.0)),
                    dict(moved_standard=moved.at[3, 1].set(jnp.nan)), dict(moved_standard=moved * 30),
-                   dict(z=jnp.asarray(11.0))):
+                   dict(z=jnp.asarray(11.0)),
+                   # one particle thrown 12 prior stds away: the spread (1.7) does not show it
+                   dict(moved_standard=moved.at[7, 0].set(12.0))):
         assert bool(divergence.diverged(**{**healthy, **change})), change
+    _, spread = masked_mean_and_std(moved.at[7, 0].set(12.0), active)
+    assert float(spread.max()) < divergence.MAX_POSTERIOR_SPREAD
     # non-finite padding rows do not count
     assert not bool(divergence.diverged(**{**healthy, "moved_standard": moved.at[3].set(jnp.inf),
                                           "active": active.at[3].set(False)}))

@@ -93,3 +93,11 @@ def _weighted_anomalies(particles: Array, log_weights: Array):
     anomalies = particles - mean[..., None, :]
     sum_squared = jnp.sum(weights**2, axis=-1)[..., None, None]
     return weights, anomalies, 1.0 - sum_squared
+
+
+def inflate(particles: Array, active: Array, inflation) -> Array:
+    """Multiplicative inflation of the anomalies about the active rows' mean: mean + inflation
+    (x - mean); inflation 1 leaves the particles exactly as they are (no ulp change)."""
+    num_active = jnp.sum(active, dtype=jnp.int32)
+    mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
+    return jnp.where(inflation == 1.0, particles, mean + inflation * anomalies)

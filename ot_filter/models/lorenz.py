@@ -96,6 +96,13 @@ def _observe_components(x, *, observed: tuple):
     return x[np.asarray(observed)]
 
 
+def _observe_squares(x, *, observed: tuple):
+    return x[np.asarray(observed)] ** 2
+
+
+OBSERVATION_OPERATORS = {"linear": _observe_components, "square": _observe_squares}
+
+
 def _ode_model(
     vector_field: Callable,
     field_parameters: tuple,
@@ -109,6 +116,7 @@ def _ode_model(
     initial_mean: Array,
     initial_std: float,
     geometry_builder: Callable | None = None,
+    observation_operator: str = "linear",
 ) -> StateSpaceModel:
     dt = check_positive("dt", dt)
     if not isinstance(steps_per_observation, int) or steps_per_observation < 1:
@@ -127,12 +135,15 @@ def _ode_model(
         raise ValueError(f"observed must be a non-empty sequence of indices, got {observed!r}")
     if observed.min() < 0 or observed.max() >= dim:
         raise ValueError(f"observed indices must lie in [0, {dim}), got {observed.tolist()}")
+    if observation_operator not in OBSERVATION_OPERATORS:
+        raise ValueError(f"observation_operator must be one of {sorted(OBSERVATION_OPERATORS)}, "
+                         f"got {observation_operator!r}")
     noisy = is_traced(process_std) or process_std != 0.0
     return with_gaussian_observation(
         bind(_sample_initial, (initial_mean, initial_std), dim=dim),
         bind(_sample_transition, (dt, process_std, tuple(field_parameters)), vector_field=vector_field,
              integrator=integrator, steps=steps_per_observation, noisy=noisy),
-        bind(_observe_components, observed=tuple(int(i) for i in observed)),
+        bind(OBSERVATION_OPERATORS[observation_operator], observed=tuple(int(i) for i in observed)),
         observed.size,
         observation_noise_std,
         geometry=None if geometry_builder is None else geometry_builder(observed),
@@ -171,8 +182,13 @@ def lorenz96(
     process_noise_std: float = 0.0,
     initial_mean: Sequence[float] | None = None,
     initial_std: float = 0.001**0.5,
+    observation_operator: str = "linear",
 ) -> StateSpaceModel:
     """Lorenz-96; defaults: Sakov & Oke (2008) twin experiment as in DAPPER (all observed).
+
+    ``observation_operator``: 'linear' (y = x[observed] + noise) or 'square'
+    (y = x[observed]^2 + noise: the sign is not observed, so where the ensemble straddles 0 the
+    posterior of a coordinate has two modes, as in the chapter's examples).
 
     The model carries its geometry (``model.geometry``, a ``localisation.ring`` of ``dim``
     sites, each observation at the site it observes) for ``ot_filter.localisation``.
@@ -188,5 +204,5 @@ def lorenz96(
     return _ode_model(
         lorenz96_vector_field, (forcing,), dim, dt, integrator,
         steps_per_observation, observed, observation_noise_std, process_noise_std,
-        initial_mean, initial_std, lambda observed: ring(dim, observed),
+        initial_mean, initial_std, lambda observed: ring(dim, observed), observation_operator,
     )

@@ -7,11 +7,20 @@ diverged when any of these holds:
 - a non-finite loss, parameters or optimiser state (``saddle.TrainingTrace.finite``);
 - an exploding smoothed loss, |J| > ``threshold * n`` in standardised units (a converged J is at
   most about 2n);
-- transported particles that are non-finite, or spread more than ``MAX_POSTERIOR_SPREAD`` prior
-  standard deviations;
+- transported particles that are non-finite, spread more than ``MAX_POSTERIOR_SPREAD`` prior
+  standard deviations, or any of them further than ``MAX_POSTERIOR_SPREAD`` prior standard
+  deviations from the prior mean in some coordinate (a map extrapolating wildly for a few
+  particles: a spread test averages them away, and the dynamics may overflow from them);
 - the observation more than ``MAX_PREDICTIVE_Z`` standard deviations from the observations
   simulated at the transported particles (a tight ensemble parked in the wrong place: a loss and
-  spread that look healthy).
+  spread that look healthy);
+- a filter losing track (``innovation_trend``): each update sees the observation against the
+  observations simulated at its PRIOR particles, the forecast of the last analyses. The
+  normalised innovation, mean over observed components of (y - mean Y)^2 / var Y, is about 1
+  for a filter that tracks (the simulated Y carry the observation noise) and grows as the
+  ensemble drifts off the truth while staying tight. Its exponential moving average over updates
+  (``TREND_SMOOTHING``) above a threshold is a trend, not one unlucky step: the update falls
+  back to the EnKF until the average comes down, long before the states overflow.
 """
 
 from __future__ import annotations
@@ -25,13 +34,22 @@ from ot_filter.lib.ensemble import masked_mean_and_std
 
 Array = jax.Array
 
-__all__ = ["MAX_POSTERIOR_SPREAD", "MAX_PREDICTIVE_Z", "diverged", "predictive_z"]
+__all__ = [
+    "MAX_POSTERIOR_SPREAD",
+    "MAX_PREDICTIVE_Z",
+    "TREND_SMOOTHING",
+    "diverged",
+    "innovation_trend",
+    "predictive_z",
+]
 
 # Transported particles spreading more than this many prior standard deviations mean divergence.
 MAX_POSTERIOR_SPREAD = 10.0
 # The observation more than this many posterior-predictive standard deviations from the
 # posterior-predictive mean means a misplaced ensemble (a correct posterior gives a few at most).
 MAX_PREDICTIVE_Z = 10.0
+# Weight of the past in the moving average of the normalised innovation (about 5 updates).
+TREND_SMOOTHING = 0.8
 
 
 def predictive_z(key: Array, sample_observation: Callable, particles: Array, observation: Array,
@@ -56,5 +74,22 @@ def diverged(trace_finite: Array, smoothed_loss: Array, threshold, n: int, moved
         | ~(jnp.abs(smoothed_loss) <= threshold * n)
         | ~jnp.all(jnp.isfinite(moved_standard) | ~active[:, None])
         | ~(jnp.max(spread) <= MAX_POSTERIOR_SPREAD)
+        | ~(jnp.max(jnp.where(active[:, None], jnp.abs(moved_standard), 0.0)) <= MAX_POSTERIOR_SPREAD)
         | ~(z <= MAX_PREDICTIVE_Z)
     )
+
+
+def innovation_trend(previous: Array, simulated: Array, observation: Array, active: Array) -> Array:
+    """The moving average of the normalised innovation after this update: ``previous`` the
+    average so far (an update's state starts it at 1, a tracking filter's value),
+    ``simulated[N, m]`` the observations simulated
+    at the prior particles, NaN components of ``observation`` missing (an update with none
+    observed leaves the average)."""
+    mean, std = masked_mean_and_std(simulated, active)
+    observed = jnp.isfinite(observation)
+    ratio = jnp.where(observed, (observation - mean) ** 2 / (std**2 + 1e-12), 0.0)
+    count = jnp.sum(observed)
+    value = jnp.sum(ratio) / jnp.maximum(count, 1)
+    value = jnp.where(jnp.isfinite(value), value, jnp.inf)
+    updated = TREND_SMOOTHING * previous + (1 - TREND_SMOOTHING) * value
+    return jnp.where(count > 0, updated, previous)

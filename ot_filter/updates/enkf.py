@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ot_filter.lib.ensemble import masked_mean_and_anomalies
+from ot_filter.lib.ensemble import inflate, masked_mean_and_anomalies
 from ot_filter.lib.gaussian import cholesky_gain
 from ot_filter.lib.linalg import truncated_pinv_solve
 from ot_filter.lib.static import bind
@@ -160,10 +160,8 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
     active = active_mask(state.log_weights)
     num_active = count_active(state.log_weights)
     mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
-    # Inflation 1 leaves the particles as they are (mean + anomalies may differ by an ulp).
-    inflation = settings.inflation
-    anomalies = inflation * anomalies
-    particles = jnp.where(inflation == 1.0, particles, mean + anomalies)
+    anomalies = settings.inflation * anomalies
+    particles = inflate(particles, active, settings.inflation)
     if not perturbed and rotate:
         # Rotated square root: a Cholesky root on the complement of the ones vector instead of
         # the symmetric root (no eigen-decomposition; the same ensemble in law, see there).

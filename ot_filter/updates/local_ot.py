@@ -31,7 +31,9 @@ slot mask, so that slots with different offsets (every second coordinate observe
 apart.
 
 EnKF layer (``enkf_layer=True``): each coordinate's local gain K_i = Cov(X_W, Y_O) Cov(Y_O)^-1
-from all particles, and T's input is x_W + K_i (y_O - Y_O). The same local gain gives the
+from all particles, and T's input is x_W + K_i (y_O - Y_O). The transport cost is measured from
+that input (``saddle.transport_cost``): T corrects the local EnKF analysis and is the identity
+where it is already right. The same local gain gives the
 fallback when training diverges: the local perturbed-observation EnKF (the layer alone), whose
 cost is also linear in n (the global EnKF fallback of ``ot()`` would not localise).
 
@@ -49,14 +51,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ot_filter.lib.ensemble import masked_mean_and_std
+from ot_filter.lib.ensemble import inflate, masked_mean_and_std
 from ot_filter.lib.fallback import use_where
 from ot_filter.lib.static import bind
-from ot_filter.lib.validation import is_traced
+from ot_filter.lib.validation import check_int, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
 from ot_filter.localisation import LocalWindows
 from ot_filter.model import StateSpaceModel
 from ot_filter.transport.divergence import diverged as divergence_test
+from ot_filter.transport.divergence import innovation_trend
 from ot_filter.transport.divergence import predictive_z as predictive_check
 from ot_filter.transport.saddle import Batch, TrainingState, enkf_gain, train_saddle, transport_input
 from ot_filter.transport.standardisation import Standardisation, identity_standardisation, standardisation
@@ -82,6 +85,7 @@ class LocalOTSettings(NamedTuple):
 
     ot: OTSettings
     windows: LocalWindows
+    context_levels: Array  # [Q] quantile levels of the local prior given to the networks (Q may be 0)
 
 
 class LocalOTState(NamedTuple):
@@ -90,8 +94,9 @@ class LocalOTState(NamedTuple):
     standardisation: Standardisation  # of the last training data (global, per coordinate)
     gain: Array  # [n, S, 2K] local EnKF gains (standardised; zeros on the mask columns)
     simulated_observations: Array  # [N, m] Y^i ~ h(. | X^i) of the last update
-    num_updates: Array
+    num_updates: Array  # updates since the networks were (re-)initialised
     diverged: Array
+    innovation_trend: Array  # moving average of the normalised innovation (1: tracking)
 
 
 class LocalOTUpdate(NamedTuple):
@@ -117,6 +122,9 @@ def local_ot(
     transport_optimizer=None,
     warm_start: bool = True,
     divergence_threshold: float = 10.0,
+    trend_threshold: float = 10.0,
+    inflation: float = 1.0,
+    prior_context: int = 8,
     potential_learning_rate: float = 1e-4,
     potential_weight_decay: float = 1.0,
     transport_learning_rate: float = 1e-3,
@@ -126,6 +134,10 @@ def local_ot(
     Args:
       windows: ``localisation.local_windows(model.geometry, radius, state_radius)``; e.g.
         radius 0 for coordinates that are independent and observed one by one.
+      prior_context: Q > 0 gives the networks each window coordinate's prior quantiles at levels
+        (k + 1/2) / Q (standardised): one shared map then serves coordinates whose priors differ
+        in shape (a filter's coordinates after different observations), not only in location
+        and scale (default 8). 0: the coordinates' local problems are taken to be alike.
       Every other argument is ``ot()``'s (``batch_size`` counts local pairs).
     """
     if not isinstance(windows, LocalWindows):
@@ -135,12 +147,14 @@ def local_ot(
         num_iterations=num_iterations, batch_size=batch_size, inner_steps=inner_steps, width=width,
         num_blocks=num_blocks, activation=activation, enkf_layer=enkf_layer,
         potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
-        warm_start=warm_start, divergence_threshold=divergence_threshold, concavity_points=0,
+        warm_start=warm_start, divergence_threshold=divergence_threshold,
+        trend_threshold=trend_threshold, inflation=inflation, concavity_points=0,
         concavity_step=0.1, prior_smoothing=0.0, fresh_observations=False,
         potential_learning_rate=potential_learning_rate,
         potential_weight_decay=potential_weight_decay, transport_learning_rate=transport_learning_rate,
     )
-    numbers = LocalOTSettings(settings, windows)
+    levels = (jnp.arange(check_int("prior_context", prior_context, minimum=0)) + 0.5) / max(prior_context, 1)
+    numbers = LocalOTSettings(settings, windows, levels)
     return LocalOTUpdate(
         init=bind(local_ot_init, numbers, structure=structure),
         apply=bind(local_ot_apply, numbers, structure=structure),
@@ -153,12 +167,18 @@ def _sizes(windows: LocalWindows) -> tuple[int, int, int]:
     return windows.state.shape[0], windows.state.shape[1], windows.observations.shape[1]
 
 
+def _conditioning_size(numbers: LocalOTSettings) -> int:
+    """Width of the networks' conditioning input: local observations, their mask, the context."""
+    _, window, reach = _sizes(numbers.windows)
+    return 2 * reach + window * numbers.context_levels.shape[0]
+
+
 def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
                   model: StateSpaceModel | None = None, *, structure: OTStructure) -> LocalOTState:
     if model is None:
         raise ValueError("local_ot().init needs the model (for the observation dimension): "
                          "init(key, particles, model)")
-    n, window, reach = _sizes(numbers.windows)
+    n, window, _ = _sizes(numbers.windows)
     if particles.ndim != 2 or particles.shape[0] < 2 or particles.shape[1] != n:
         raise ValueError(f"particles must have shape [N >= 2, {n}] (the windows' n), got {particles.shape}")
     m = jax.eval_shape(model.sample_observation, key, particles[0]).shape[0]
@@ -168,12 +188,13 @@ def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
     dtype = particles.dtype
     return LocalOTState(
         log_weights=uniform_log_weights(particles),
-        training=init_training(numbers.ot, structure, key, window, 2 * reach, dtype),
+        training=init_training(numbers.ot, structure, key, window, _conditioning_size(numbers), dtype),
         standardisation=identity_standardisation(n, m, dtype),
-        gain=jnp.zeros((n, window, 2 * reach), dtype),
+        gain=jnp.zeros((n, window, _conditioning_size(numbers)), dtype),
         simulated_observations=jnp.zeros((particles.shape[0], m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
+        innovation_trend=jnp.ones((), dtype),
     )
 
 
@@ -194,19 +215,30 @@ class _LocalData(NamedTuple):
     """The standardised local pairs of one update."""
 
     x: Array  # [N, n, S] each particle's window of each coordinate
-    y: Array  # [N, n, 2K] its simulated local observations and the slot mask
-    observation: Array  # [n, 2K] the actual local observations and the slot mask
-    gain: Array  # [n, S, 2K]
+    y: Array  # [N, n, C] its simulated local observations, the slot mask and the prior context
+    observation: Array  # [n, C] the actual local observations, the slot mask and the context
+    gain: Array  # [n, S, C] (zero on the mask and context columns: constant per coordinate)
 
 
-def _local_data(windows: LocalWindows, xs: Array, ys: Array, y_standard: Array, observed: Array,
+def local_prior_quantiles(xs: Array, active: Array, levels: Array) -> Array:
+    """``[n, Q]``: each coordinate's quantiles at ``levels[Q]`` over the active rows of ``xs``."""
+    num_active = jnp.sum(active, dtype=jnp.int32)
+    ordered = jnp.sort(jnp.where(active[:, None], xs, jnp.inf), axis=0)
+    index = jnp.clip(jnp.floor(levels * num_active).astype(jnp.int32), 0, num_active - 1)
+    return ordered[index].T
+
+
+def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Array, observed: Array,
                 active: Array) -> _LocalData:
     """Windows of standardised particles ``xs[N, n]`` and observations ``ys[N, m]``; missing
     components (``observed[m]`` False) and padding are 0 with mask 0."""
+    windows = numbers.windows
     mask = (windows.observations_valid & observed[windows.observations]).astype(xs.dtype)  # [n, K]
+    quantiles = local_prior_quantiles(xs, active, numbers.context_levels)  # [n, Q]
+    context = (quantiles[windows.state] * windows.state_valid[..., None]).reshape(mask.shape[0], -1)
 
     def local_y(y_row):
-        return jnp.concatenate([y_row[windows.observations] * mask, mask], axis=-1)
+        return jnp.concatenate([y_row[windows.observations] * mask, mask, context], axis=-1)
 
     x = xs[:, windows.state] * windows.state_valid.astype(xs.dtype)
     y = jax.vmap(local_y)(ys)
@@ -230,11 +262,13 @@ def _move(data: _LocalData, transport: Callable | None, use_gain: bool) -> Array
 @jax.jit(static_argnames=("structure",))
 def _apply(numbers, key, state, particles, observation, model, structure):
     """Simulate, standardise, cut windows, train the shared map, transport, check, fall back."""
-    settings, windows = numbers
+    settings = numbers.ot
     num, n = particles.shape
-    _, window, reach = _sizes(windows)
+    _, window, _ = _sizes(numbers.windows)
+    conditioning = _conditioning_size(numbers)
     simulate_key, train_key, check_key, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
+    particles = inflate(particles, active_mask(state.log_weights), settings.inflation)
 
     simulated = jax.vmap(model.sample_observation)(jax.random.split(simulate_key, num), particles)
     active = active_mask(state.log_weights)
@@ -244,7 +278,7 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     xs = scaling.standardise_x(particles)
     ys = jnp.where(observed, scaling.standardise_y(simulated), 0.0)
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
-    data = _local_data(windows, xs, ys, y_standard, observed, active)
+    data = _local_data(numbers, xs, ys, y_standard, observed, active)
     active_index = jnp.argsort(~active, stable=True)
 
     def sample_batch(batch_key):
@@ -256,28 +290,32 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         return Batch(data.x[pair, coordinate], data.y[pair, coordinate], data.x[copy, coordinate],
                      data.y[copy, coordinate], data.gain[coordinate] if structure.enkf_layer else None)
 
+    trend = innovation_trend(state.innovation_trend, simulated, observation, active)
+    lost = ~(trend <= settings.trend_threshold)  # lost track: no training, the local EnKF serves
+    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
+                                                 structure.floor_iterations))
     training = state.training
     if not structure.warm_start:
-        training = init_training(settings, structure, reset_key, window, 2 * reach, particles.dtype)
+        training = init_training(settings, structure, reset_key, window, conditioning, particles.dtype)
     potential_optimizer, transport_optimizer = optimizers(settings, structure)
     training, trace = train_saddle(
         train_key, training, sample_batch,
-        iteration_budget(state.num_updates, structure.first_iterations, structure.floor_iterations),
+        budget,
         potential_net=potential_net, transport_net=transport_net,
         potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
         inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
-        record_length=structure.first_iterations,
+        record_length=structure.first_iterations, cost_from_layer=True,
     )
     params = training.params
     moved = _move(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer)
 
     z = predictive_check(check_key, model.sample_observation, scaling.restore_x(moved), observation, active)
-    diverged = divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, window,
+    diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, window,
                                moved, active, z)
     fallback = scaling.restore_x(_move(data, None, True))
     posterior = use_where(~diverged, scaling.restore_x(moved), fallback)
     posterior = jnp.where(jnp.any(observed), posterior, particles)
-    fresh = init_training(settings, structure, reset_key, window, 2 * reach, particles.dtype)
+    fresh = init_training(settings, structure, reset_key, window, conditioning, particles.dtype)
     training = use_where(diverged, fresh, training)
 
     sample = jax.random.randint(jax.random.fold_in(check_key, 1), (num,), 0, n)
@@ -289,8 +327,9 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         standardisation=scaling,
         gain=data.gain,
         simulated_observations=simulated,
-        num_updates=state.num_updates + 1,
+        num_updates=jnp.where(diverged, 0, state.num_updates + 1),
         diverged=diverged,
+        innovation_trend=trend,
     )
     info = OTInfo(
         loss=trace.loss,
@@ -300,6 +339,7 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         concavity_violation=jnp.zeros((), particles.dtype),
         potential_spread=finite_or_inf(masked_mean_and_std(potential_values[:, None], active)[1][0]),
         predictive_z=finite_or_inf(z),
+        innovation_trend=trend,
     )
     return posterior, state, info
 
@@ -320,7 +360,7 @@ def _transport(numbers, state, particles, observation, structure):
     scaling = state.standardisation
     observed = jnp.isfinite(observation)
     active = active_mask(state.log_weights)
-    data = _local_data(numbers.windows, scaling.standardise_x(particles),
+    data = _local_data(numbers, scaling.standardise_x(particles),
                        jnp.where(observed, scaling.standardise_y(state.simulated_observations), 0.0),
                        jnp.where(observed, scaling.standardise_y(observation), 0.0), observed, active)
     params = state.training.params.transport

@@ -14,10 +14,11 @@ filter steps) unless ``warm_start=False``.
 
 Diagnostics (``OTInfo``): the loss curve, a divergence test and the c-concavity check.
 Divergence (``transport/divergence.py``: a non-finite or exploding loss, non-finite or
-over-spread transported particles, an implausible observation under the transported ensemble)
-is reported in ``info.diverged``. That step then falls back to the perturbed-observation EnKF
-update (``ot_filter.enkf()``) and the networks are re-initialised, so that a filter never
-carries garbage forward.
+over-spread transported particles, an implausible observation under the transported ensemble,
+or a filter that has lost track, seen in the trend of its innovations over updates) is reported
+in ``info.diverged``. That step then falls back to the perturbed-observation EnKF update
+(``ot_filter.enkf()``) and the networks are re-initialised with the iteration schedule restarted,
+so that a filter never carries garbage forward.
 
 Small particle counts: trained on the N pairs alone, the networks resolve individual pairs and
 the map learns the posterior of an under-smoothed prior (at N = 100 the mode masses of the static
@@ -49,7 +50,7 @@ import jax.numpy as jnp
 import optax
 
 from ot_filter.lib.fallback import use_where
-from ot_filter.lib.ensemble import masked_mean_and_std
+from ot_filter.lib.ensemble import inflate, masked_mean_and_std
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
@@ -57,6 +58,7 @@ from ot_filter.model import StateSpaceModel
 from ot_filter.transport.batches import TrainingData, sample_batch
 from ot_filter.transport.diagnostics import c_concavity_min_eigenvalue
 from ot_filter.transport.divergence import diverged as divergence_test
+from ot_filter.transport.divergence import innovation_trend
 from ot_filter.transport.divergence import predictive_z as predictive_check
 from ot_filter.transport.networks import ACTIVATIONS, PotentialNetwork, TransportNetwork
 from ot_filter.transport.saddle import (
@@ -101,6 +103,8 @@ class OTSettings(NamedTuple):
     divergence_threshold: Array  # |smoothed J| above this times n counts as divergence
     concavity_step: Array  # difference step of the c-concavity check (standardised units)
     prior_smoothing: Array  # c in the smoothing bandwidth
+    trend_threshold: Array  # the moving average of the normalised innovation above this: lost track
+    inflation: Array  # multiplicative inflation (>= 1) of the prior anomalies before the update
 
 
 class OTStructure(NamedTuple):
@@ -128,8 +132,9 @@ class OTState(NamedTuple):
     standardisation: Standardisation  # of the last training data
     gain: Array  # [n, m] EnKF-layer gain from all particles (standardised); zeros without it
     simulated_observations: Array  # [N, m] Y^i ~ h(. | X^i) of the last update
-    num_updates: Array  # int scalar: updates done so far
+    num_updates: Array  # int scalar: updates since the networks were (re-)initialised
     diverged: Array  # bool: the last training diverged; the networks were re-initialised
+    innovation_trend: Array  # moving average of the normalised innovation (1: tracking)
 
 
 class OTInfo(NamedTuple):
@@ -142,6 +147,8 @@ class OTInfo(NamedTuple):
     potential_spread: Array  # std of f(X^i, Y^i): its growth is the first sign of divergence
     predictive_z: Array  # max over coordinates of |y - mean Y'| / std Y', Y' simulated at the
     #                      transported particles (0 for a missing observation)
+    innovation_trend: Array  # moving average over updates of the normalised prior innovation;
+    #                          above trend_threshold the filter lost track: EnKF, no training
 
 
 class OTUpdate(NamedTuple):
@@ -178,6 +185,8 @@ def ot(
     transport_optimizer: optax.GradientTransformation | None = None,
     warm_start: bool = True,
     divergence_threshold: float = 10.0,
+    trend_threshold: float = 10.0,
+    inflation: float = 1.0,
     concavity_points: int = 256,
     concavity_step: float = 0.1,
     prior_smoothing: float = 1.0,
@@ -211,6 +220,12 @@ def ot(
       potential_learning_rate, potential_weight_decay: the default AdamW on f (1e-4, 1).
       transport_learning_rate: the default Adam on T (1e-3).
       divergence_threshold: |smoothed J| above this times n counts as divergence.
+      inflation: multiplies the prior particles' anomalies before the update (as ``enkf``'s):
+        chaotic models with few particles need a little (e.g. 1.04 on Lorenz-96).
+      trend_threshold: the moving average over updates of the normalised innovation (about 1
+        while the filter tracks; ``transport/divergence.py``) above this means the filter lost
+        track: the update then skips training, uses the EnKF and restarts the networks (and the
+        iteration schedule) until the average comes down.
       concavity_step: difference step of the c-concavity check (standardised units).
       prior_smoothing: c in the kernel bandwidth h = c (4 / (n + 2))^(1/(n+4)) N^(-1/(n+4))
         (Silverman's rule, standardised units) of the smoothed prior the map is trained on
@@ -222,7 +237,7 @@ def ot(
         num_blocks=num_blocks, activation=activation, enkf_layer=enkf_layer,
         potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
         warm_start=warm_start, divergence_threshold=divergence_threshold,
-        concavity_points=concavity_points, concavity_step=concavity_step,
+        trend_threshold=trend_threshold, inflation=inflation, concavity_points=concavity_points, concavity_step=concavity_step,
         prior_smoothing=prior_smoothing, fresh_observations=fresh_observations,
         potential_learning_rate=potential_learning_rate,
         potential_weight_decay=potential_weight_decay,
@@ -238,7 +253,7 @@ def ot(
 
 def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activation, enkf_layer,
            potential_optimizer, transport_optimizer, warm_start, divergence_threshold,
-           concavity_points, concavity_step, prior_smoothing, fresh_observations,
+           trend_threshold, inflation, concavity_points, concavity_step, prior_smoothing, fresh_observations,
            potential_learning_rate, potential_weight_decay, transport_learning_rate,
            ) -> tuple[OTSettings, OTStructure]:
     """Validates ``ot()``'s arguments (also ``local_ot()``'s): the traced numbers and the static
@@ -263,6 +278,8 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
         potential_weight_decay=check_number("potential_weight_decay", potential_weight_decay, 0.0),
         transport_learning_rate=check_number("transport_learning_rate", transport_learning_rate, 0.0, strict_minimum=True),
         divergence_threshold=check_number("divergence_threshold", divergence_threshold, 0.0, strict_minimum=True),
+        trend_threshold=check_number("trend_threshold", trend_threshold, 0.0, strict_minimum=True),
+        inflation=check_number("inflation", inflation, 1.0),
         concavity_step=check_number("concavity_step", concavity_step, 0.0, strict_minimum=True),
         prior_smoothing=check_number("prior_smoothing", prior_smoothing, 0.0),
     )
@@ -350,6 +367,7 @@ def ot_init(settings: OTSettings, key: Array, particles: Array, model: StateSpac
         simulated_observations=jnp.zeros((num, m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
+        innovation_trend=jnp.ones((), dtype),
     )
 
 
@@ -372,6 +390,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
     num, n = particles.shape
     simulate_key, train_key, fallback_key, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
+    particles = inflate(particles, active_mask(state.log_weights), settings.inflation)
 
     # 1. Training data: Y^i ~ h(. | X^i), both standardised over the active (unpadded) particles.
     simulated = jax.vmap(model.sample_observation)(jax.random.split(simulate_key, num), particles)
@@ -396,7 +415,12 @@ def _apply(settings, key, state, particles, observation, model, structure):
         scaling=scaling,
     )
 
-    # 2. Saddle-point training, warm-started (or not) and budgeted by the halving schedule.
+    # 2. Saddle-point training, warm-started (or not) and budgeted by the halving schedule; none
+    #    while the filter has lost track (the EnKF serves until the innovations come down).
+    trend = innovation_trend(state.innovation_trend, simulated, observation, active)
+    lost = ~(trend <= settings.trend_threshold)
+    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
+                                                 structure.floor_iterations))
     training = state.training
     if not structure.warm_start:
         training = init_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
@@ -408,7 +432,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
             smoothing=structure.smoothing, fresh_observations=structure.fresh_observations,
             enkf_layer=structure.enkf_layer,
         ),
-        iteration_budget(state.num_updates, structure.first_iterations, structure.floor_iterations),
+        budget,
         potential_net=potential_net, transport_net=transport_net,
         potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
         inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
@@ -424,8 +448,8 @@ def _apply(settings, key, state, particles, observation, model, structure):
     # 4. Checks: divergence (loss, spread, posterior predictive) and c-concavity.
     z = predictive_check(jax.random.fold_in(key, 4), model.sample_observation,
                          scaling.restore_x(moved), observation, active)
-    diverged = divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
-                               moved, active, z)
+    diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
+                                      moved, active, z)
     min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data)
 
     # 5. Fall back to the EnKF where training diverged, and restart the networks there.
@@ -447,8 +471,9 @@ def _apply(settings, key, state, particles, observation, model, structure):
         standardisation=scaling,
         gain=gain,
         simulated_observations=simulated,
-        num_updates=state.num_updates + 1,
+        num_updates=jnp.where(diverged, 0, state.num_updates + 1),  # fresh networks: full budget
         diverged=diverged,
+        innovation_trend=trend,
     )
     info = OTInfo(
         loss=trace.loss,
@@ -458,6 +483,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
         concavity_violation=finite_or_inf(violation),
         potential_spread=finite_or_inf(masked_mean_and_std(potential_values[:, None], active)[1][0]),
         predictive_z=finite_or_inf(z),
+        innovation_trend=trend,
     )
     return posterior, state, info
 

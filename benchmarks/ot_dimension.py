@@ -1,0 +1,221 @@
+"""OT at scale: the static and dynamic examples over the state dimension, against EXACT posteriors.
+
+    PYTHONPATH=. python benchmarks/ot_dimension.py [--dims 2,5,10,20,50] [--part static|dynamic|both]
+
+Every method on the same priors / truths: EnKF, LETKF (radius 0: told the coordinates are
+independent), SIR, the global OT update and the localised one (radius 0). Metrics
+(``metrics.compare_to_product_grid``): W1 of each coordinate's marginal to the exact one,
+averaged over coordinates and its worst coordinate, and the joint sliced W2 and energy distance
+to N exact samples, each beside its Monte-Carlo floor (N exact samples scored the same way).
+
+- static: lambda_w = 0.4, y = 1, N = 1000, one update per seed (``--seeds``), library defaults.
+- dynamic: N = 1000, 20 steps, ``--simulations``, time average over t >= 1; OT with the dynamic
+  experiment's filter options (``experiments.dynamic_example.OT_FILTER_OPTIONS``) for both OT
+  updates.
+
+- cost: seconds of one update at the smallest and the largest n, global and localised.
+
+Writes ot_dimension.{json,md,png} to --out (the JSON after each part).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # jaxlib's LAPACK threads fight XLA's on 2 cores
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
+
+from ot_filter.experiments._common import write_text_atomic  # noqa: E402
+from ot_filter.experiments.dynamic_example import run_dynamic_example  # noqa: E402
+from ot_filter.experiments.static_example import run_static_example  # noqa: E402
+
+METHODS = ("enkf", "letkf", "sir", "ot", "local_ot")
+LABELS = {"enkf": "EnKF", "letkf": "LETKF (r = 0)", "sir": "SIR", "ot": "OT (global)", "local_ot": "OT (localised)"}
+METRICS = ("w1", "w1_max", "sliced_w2", "energy")
+
+
+def static_rows(dims, seeds):
+    rows = []
+    for dim in dims:
+        start = time.perf_counter()
+        result = run_static_example(jax.random.key(2026), noise=0.4, num_particles=1000, num_seeds=seeds,
+                                    dim=dim, methods=METHODS)
+        summary = result["metrics"]
+        row = {"dim": dim, "seconds": time.perf_counter() - start,
+               "floor": {k: summary[f"floor_{k}"] for k in METRICS}}
+        for name in METHODS:
+            row[name] = {k: summary[name][k] for k in METRICS}
+            row[name]["modes_held"] = summary[name]["seeds_holding_both_modes"]
+            if "diverged_seeds" in summary[name]:
+                row[name]["diverged"] = summary[name]["diverged_seeds"]
+        rows.append(row)
+        print(f"static n={dim}: " + ", ".join(f"{n} {row[n]['w1']['mean']:.3f}" for n in METHODS)
+              + f"; floor {row['floor']['w1']['mean']:.3f}; {row['seconds']:.0f} s", flush=True)
+    return rows
+
+
+def dynamic_rows(dims, simulations, steps):
+    rows = []
+    for dim in dims:
+        start = time.perf_counter()
+        result = run_dynamic_example(jax.random.key(2026), dim=dim, num_particles=1000, num_steps=steps,
+                                     num_simulations=simulations, methods=METHODS, bandwidth=4.0,
+                                     standardise=True, average_from=1.0, keep=0)
+        summary = result["metrics"]
+        row = {"dim": dim, "seconds": time.perf_counter() - start, "floor": summary["floor"]}
+        for name in METHODS:
+            row[name] = dict(summary[name]["exact"], published_mmd=summary[name]["mmd_average"],
+                             seconds_per_step=summary[name]["seconds_per_step"],
+                             diverged_steps=summary[name].get("diverged_steps", 0))
+        rows.append(row)
+        print(f"dynamic n={dim}: " + ", ".join(f"{n} {row[n]['w1']['mean']:.3f}" for n in METHODS)
+              + f"; floor {row['floor']['w1']['mean']:.3f}; {row['seconds']:.0f} s", flush=True)
+    return rows
+
+
+def cost_rows(dims, repeats=3):
+    """Seconds of one update (static example, N = 1000, defaults) after compilation, best of
+    ``repeats``, global and localised, every n in one run (ratios are what carry over)."""
+    import jax.numpy as jnp
+
+    import ot_filter as otf
+    from ot_filter.models import squared_observation
+
+    rows = []
+    for dim in dims:
+        model = squared_observation(dim=dim, noise=0.4, observation_scale=0.5, static=True)
+        prior = jax.vmap(model.sample_initial)(jax.random.split(jax.random.key(0), 1000))
+        row = {"dim": dim}
+        for name, update in (("ot", otf.ot()), ("local_ot", otf.local_ot(otf.local_windows(model.geometry, 0.0)))):
+            state = update.init(jax.random.key(1), prior, model)
+            apply = jax.jit(lambda key, state: update.apply(key, state, prior, jnp.ones(dim), model)[0])
+            start = time.perf_counter()
+            apply(jax.random.key(2), state).block_until_ready()
+            first = time.perf_counter() - start
+            times = []
+            for repeat in range(repeats):
+                start = time.perf_counter()
+                apply(jax.random.key(3 + repeat), state).block_until_ready()
+                times.append(time.perf_counter() - start)
+            row[name] = {"seconds": min(times), "compile_s": max(first - min(times), 0.0)}
+        rows.append(row)
+        print(f"cost n={dim}: global {row['ot']['seconds']:.2f} s, localised {row['local_ot']['seconds']:.2f} s",
+              flush=True)
+    for row in rows:
+        for name in ("ot", "local_ot"):
+            row[name]["ratio_to_first"] = row[name]["seconds"] / rows[0][name]["seconds"]
+    return rows
+
+
+def _cell(entry):
+    return f"{entry['mean']:.3f} ± {entry['stderr']:.3f}"
+
+
+def _table(title, rows, extra=None):
+    lines = [f"## {title}", ""]
+    for metric, label in (("w1", "W1 per coordinate (mean over coordinates)"),
+                          ("w1_max", "W1 of the worst coordinate"),
+                          ("sliced_w2", "sliced W2 (joint)"), ("energy", "energy distance (joint)")):
+        lines += [f"### {label}", "", "| n | " + " | ".join(LABELS[n] for n in METHODS) + " | floor (N exact) |",
+                  "|--:|" + "--:|" * (len(METHODS) + 1)]
+        for row in rows:
+            lines.append(f"| {row['dim']} | " + " | ".join(_cell(row[n][metric]) for n in METHODS)
+                         + f" | {_cell(row['floor'][metric])} |")
+        lines.append("")
+    if extra:
+        lines += extra(rows)
+    return lines
+
+
+def _dynamic_extra(rows):
+    lines = ["### The published metric (standardised MMD, bandwidth 4) and cost", "",
+             "| n | " + " | ".join(LABELS[n] for n in METHODS) + " | OT s/step (global, local) | diverged steps (global, local) |",
+             "|--:|" + "--:|" * (len(METHODS) + 2)]
+    for row in rows:
+        lines.append(f"| {row['dim']} | " + " | ".join(_cell(row[n]["published_mmd"]) for n in METHODS)
+                     + f" | {row['ot']['seconds_per_step']:.3f}, {row['local_ot']['seconds_per_step']:.3f}"
+                     + f" | {row['ot']['diverged_steps']}, {row['local_ot']['diverged_steps']} |")
+    return lines + [""]
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    parts = [p for p in ("static", "dynamic") if results.get(p)]
+    fig, axes = plt.subplots(1, len(parts), figsize=(6.2 * len(parts), 4.3), squeeze=False)
+    for ax, part in zip(axes[0], parts):
+        rows = results[part]
+        dims = [r["dim"] for r in rows]
+        for name in METHODS:
+            ax.errorbar(dims, [r[name]["w1"]["mean"] for r in rows], [2 * r[name]["w1"]["stderr"] for r in rows],
+                        marker="o", capsize=3, label=LABELS[name])
+        ax.plot(dims, [r["floor"]["w1"]["mean"] for r in rows], "k--", label="N exact samples (floor)")
+        ax.plot(dims, [2 * r["floor"]["w1"]["mean"] for r in rows], "k:", label="twice the floor")
+        ax.set(xscale="log", yscale="log", xlabel="state dimension n",
+               ylabel="W1 to the exact marginals (mean over coordinates)",
+               title=("Static example, one update (N = 1000)" if part == "static"
+                      else "Dynamic example, filter (N = 1000, t ≥ 1)"))
+        ax.set_xticks(dims)
+        ax.set_xticklabels([str(d) for d in dims])
+        ax.grid(alpha=0.3, which="both")
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dims", default="2,5,10,20,50")
+    parser.add_argument("--part", choices=("static", "dynamic", "cost", "both", "all"), default="all")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--simulations", type=int, default=10)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--out", default="benchmarks/results")
+    args = parser.parse_args()
+    dims = [int(v) for v in args.dims.split(",")]
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "ot_dimension.json")
+    results = json.load(open(path)) if os.path.exists(path) else {}
+    results["device"] = str(jax.devices()[0])
+    if args.part in ("cost", "all"):
+        results["cost"] = cost_rows([dims[0], dims[-1]] if len(dims) > 1 else dims)
+        write_text_atomic(path, json.dumps(results, indent=1))
+    if args.part in ("static", "both", "all"):
+        results["static"] = static_rows(dims, args.seeds)
+        results["static_seeds"] = args.seeds
+        write_text_atomic(path, json.dumps(results, indent=1))
+    if args.part in ("dynamic", "both", "all"):
+        results["dynamic"] = dynamic_rows(dims, args.simulations, args.steps)
+        results["dynamic_simulations"] = args.simulations
+    write_text_atomic(path, json.dumps(results, indent=1))
+    lines = ["# OT at scale: accuracy against the exact posterior over the state dimension", "",
+             "Generated by `benchmarks/ot_dimension.py`; mean ± s.e. over seeds (static) or simulations "
+             "(dynamic). The floor is N = 1000 exact samples scored the same way.", ""]
+    if results.get("cost"):
+        lines += ["## Cost of one update (static example, N = 1000, defaults; best of 3 after compilation, one run)", "",
+                  "| n | global OT (s) | ratio to the first n | localised OT (s) | ratio to the first n |",
+                  "|--:|--:|--:|--:|--:|"]
+        for row in results["cost"]:
+            lines.append(f"| {row['dim']} | {row['ot']['seconds']:.2f} | {row['ot']['ratio_to_first']:.2f} | "
+                         f"{row['local_ot']['seconds']:.2f} | {row['local_ot']['ratio_to_first']:.2f} |")
+        lines.append("")
+    if results.get("static"):
+        lines += _table(f"Static example (lambda_w = 0.4, y = 1, N = 1000, {results['static_seeds']} seeds, "
+                        "library defaults)", results["static"])
+    if results.get("dynamic"):
+        lines += _table(f"Dynamic example (N = 1000, {results['dynamic_simulations']} simulations, "
+                        "time average over t ≥ 1)", results["dynamic"], _dynamic_extra)
+    write_text_atomic(os.path.join(args.out, "ot_dimension.md"), "\n".join(lines) + "\n")
+    plot(results, os.path.join(args.out, "ot_dimension.png"))
+
+
+if __name__ == "__main__":
+    main()
