@@ -134,7 +134,6 @@ def _bimodal_demo(out: str, seed: int) -> dict:
     """The chapter's dynamic example (y = x^2: every coordinate's posterior has two modes) in
     n = 10: the OT filters against EnKF and SIR, scored by W1 to the exact filter."""
     import jax
-    import numpy as np
 
     from ot_filter.experiments.dynamic_example import run_dynamic_example
 
@@ -278,7 +277,8 @@ def main(argv: list[str] | None = None) -> int:
             _list()
         elif arguments.command == "demo":
             run_demo(arguments.out, arguments.seed)
-            print(f"wrote {os.path.join(arguments.out, 'demo.png')} and "
+            print(f"wrote {os.path.join(arguments.out, 'demo.png')}, "
+                  f"{os.path.join(arguments.out, 'demo_bimodal.png')} and "
                   f"{os.path.join(arguments.out, 'metrics.json')}")
         elif arguments.command == "gallery":
             copied = _gallery(arguments.out, arguments.runs)

@@ -130,7 +130,9 @@ def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain
     reach, window = windows.observations.shape[1], windows.state.shape[1]
     context = np.asarray(data.y)[:, :, 2 * reach:]  # [N, n, S Q]
     np.testing.assert_array_equal(context, np.broadcast_to(context[0], context.shape))  # one per coordinate
-    np.testing.assert_array_equal(context[0].reshape(size, window, levels), quantiles[np.asarray(windows.state)])
+    deviations = quantiles - quantiles.mean(axis=0)  # from the coordinates' mean profile
+    np.testing.assert_allclose(context[0].reshape(size, window, levels), deviations[np.asarray(windows.state)],
+                               atol=1e-12)
     np.testing.assert_allclose(np.asarray(data.gain)[:, :, 2 * reach:], 0.0, atol=1e-10)
 
 
@@ -144,7 +146,7 @@ def test_divergence_falls_back_to_the_local_enkf():
     # The fallback is the layer alone with the update's own simulated observations.
     scaling = state.standardisation
     observed = jnp.ones(3, bool)
-    data = _local_data(_numbers(local_windows(model.geometry, 0.0)), scaling.standardise_x(prior),
+    data = _local_data(_numbers(local_windows(model.geometry, 0.0), 8), scaling.standardise_x(prior),
                        scaling.standardise_y(state.simulated_observations), scaling.standardise_y(jnp.ones(3)),
                        observed, jnp.ones(200, bool))
     np.testing.assert_allclose(posterior, scaling.restore_x(_move(data, None, True)), rtol=1e-5, atol=1e-5)

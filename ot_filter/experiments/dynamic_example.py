@@ -110,17 +110,24 @@ def filter_simulations(key, model, update, observations, num_particles: int, num
     return particles, log_weights, info, timing
 
 
+def _flat_pairs(particles, log_weights, reference):
+    """``(grid[G], (particles[S T, N, n], log_weights[S T, N], masses[S T, n, G]))``: every
+    (simulation, time) pair of a run and its exact posterior, flattened for one ``lax.map``."""
+    num_simulations, num_steps = particles.shape[:2]
+    grid = jnp.asarray(reference.grid[0] if reference.grid.ndim > 1 else reference.grid)
+    masses = jnp.swapaxes(jnp.asarray(reference.masses), 1, 2)  # [S, T, n, G]
+    return grid, jax.tree.map(
+        lambda a: jnp.reshape(a, (num_simulations * num_steps,) + a.shape[2:]),
+        (jnp.asarray(particles), jnp.asarray(log_weights), masses),
+    )
+
+
 def mmd_to_exact(particles, log_weights, reference, bandwidth: float, standardise: bool):
     """MMD ``[S, T]`` between the filters' weighted particles ``[S, T, N, n]`` and the exact
     posterior (``reference``: ``GridFilter`` with masses ``[S, n, T, G]``). ``standardise``
     measures each coordinate in units of the exact posterior's standard deviation."""
     num_simulations, num_steps = particles.shape[:2]
-    grid = jnp.asarray(reference.grid[0] if reference.grid.ndim > 1 else reference.grid)
-    masses = jnp.swapaxes(jnp.asarray(reference.masses), 1, 2)  # [S, T, n, G]
-    flat = jax.tree.map(
-        lambda a: jnp.reshape(a, (num_simulations * num_steps,) + a.shape[2:]),
-        (jnp.asarray(particles), jnp.asarray(log_weights), masses),
-    )
+    grid, flat = _flat_pairs(particles, log_weights, reference)
     values = _mmd_to_exact_flat(*flat, grid, bandwidth, standardise)
     return np.asarray(values).reshape(num_simulations, num_steps)
 
@@ -150,12 +157,7 @@ def exact_comparison(key, particles, log_weights, reference) -> dict:
     N exact samples (the Monte-Carlo floor): ``{"w1": [S, T, n], "sliced_w2": [S, T],
     "energy": [S, T], "floor_w1": ..., "floor_sliced_w2": ..., "floor_energy": ...}``."""
     num_simulations, num_steps = particles.shape[:2]
-    grid = jnp.asarray(reference.grid[0] if reference.grid.ndim > 1 else reference.grid)
-    masses = jnp.swapaxes(jnp.asarray(reference.masses), 1, 2)  # [S, T, n, G]
-    flat = jax.tree.map(
-        lambda a: jnp.reshape(a, (num_simulations * num_steps,) + a.shape[2:]),
-        (jnp.asarray(particles), jnp.asarray(log_weights), masses),
-    )
+    grid, flat = _flat_pairs(particles, log_weights, reference)
     keys = jax.random.split(key, num_simulations * num_steps)
     values = _exact_comparison_flat(keys, *flat, grid)
     return {name: np.asarray(value).reshape((num_simulations, num_steps) + value.shape[1:])

@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ot_filter.lib.ensemble import inflate, masked_mean_and_std
+from ot_filter.lib.ensemble import masked_mean_and_std
 from ot_filter.lib.fallback import use_where
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, is_traced
@@ -59,20 +59,20 @@ from ot_filter.lib.weights import active_mask, uniform_log_weights
 from ot_filter.localisation import LocalWindows
 from ot_filter.model import StateSpaceModel
 from ot_filter.transport.divergence import diverged as divergence_test
-from ot_filter.transport.divergence import innovation_trend
 from ot_filter.transport.divergence import predictive_z as predictive_check
-from ot_filter.transport.saddle import Batch, TrainingState, enkf_gain, train_saddle, transport_input
-from ot_filter.transport.standardisation import Standardisation, identity_standardisation, standardisation
+from ot_filter.transport.saddle import Batch, TrainingState, enkf_gain, transport_input
+from ot_filter.transport.standardisation import Standardisation, identity_standardisation
 from ot_filter.updates.ot import (
     OTInfo,
     OTSettings,
     OTStructure,
+    check_apply_arguments,
     finite_or_inf,
     init_training,
-    iteration_budget,
     networks,
-    optimizers,
+    prior_data,
     recipe,
+    train,
 )
 
 Array = jax.Array
@@ -111,7 +111,7 @@ class LocalOTUpdate(NamedTuple):
 
 def local_ot(
     windows: LocalWindows,
-    num_iterations: int | tuple[int, int] = 10_000,
+    num_iterations: int | tuple[int, int] = (10_000, 500),
     batch_size: int = 128,
     inner_steps: int = 10,
     width: int = 32,
@@ -135,9 +135,10 @@ def local_ot(
       windows: ``localisation.local_windows(model.geometry, radius, state_radius)``; e.g.
         radius 0 for coordinates that are independent and observed one by one.
       prior_context: Q > 0 gives the networks each window coordinate's prior quantiles at levels
-        (k + 1/2) / Q (standardised): one shared map then serves coordinates whose priors differ
-        in shape (a filter's coordinates after different observations), not only in location
-        and scale (default 8). 0: the coordinates' local problems are taken to be alike.
+        (k + 1/2) / Q (standardised, minus their mean over the coordinates): one shared map then
+        serves coordinates whose priors differ in shape (a filter's coordinates after different
+        observations), not only in location and scale (default 8). 0: the coordinates' local
+        problems are taken to be alike.
       Every other argument is ``ot()``'s (``batch_size`` counts local pairs).
     """
     if not isinstance(windows, LocalWindows):
@@ -201,14 +202,8 @@ def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
 def local_ot_apply(numbers: LocalOTSettings, key: Array, state: LocalOTState, particles: Array,
                    observation: Array, model: StateSpaceModel, *, structure: OTStructure):
     """Shapes checked here; the work is one compiled program."""
-    num, n = state.log_weights.shape[0], state.gain.shape[0]
-    m = state.standardisation.y_mean.shape[0]
-    if jnp.shape(particles) != (num, n):
-        raise ValueError(f"particles must have shape ({num}, {n}) like at init, got {jnp.shape(particles)}")
-    if jnp.shape(observation) != (m,):
-        raise ValueError(f"observation must have shape ({m},), got {jnp.shape(observation)}")
-    return _apply(numbers, key, state, particles, jnp.asarray(observation, particles.dtype), model,
-                  structure=structure)
+    observation = check_apply_arguments(state, particles, observation)
+    return _apply(numbers, key, state, particles, observation, model, structure=structure)
 
 
 class _LocalData(NamedTuple):
@@ -235,6 +230,9 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     windows = numbers.windows
     mask = (windows.observations_valid & observed[windows.observations]).astype(xs.dtype)  # [n, K]
     quantiles = local_prior_quantiles(xs, active, numbers.context_levels)  # [n, Q]
+    # Deviations from the coordinates' mean profile: nearly 0 where the local priors are alike
+    # (then the context costs the networks nothing), the shape difference where they are not.
+    quantiles = quantiles - jnp.mean(quantiles, axis=0)
     context = (quantiles[windows.state] * windows.state_valid[..., None]).reshape(mask.shape[0], -1)
 
     def local_y(y_row):
@@ -268,15 +266,9 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     conditioning = _conditioning_size(numbers)
     simulate_key, train_key, check_key, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
-    particles = inflate(particles, active_mask(state.log_weights), settings.inflation)
 
-    simulated = jax.vmap(model.sample_observation)(jax.random.split(simulate_key, num), particles)
-    active = active_mask(state.log_weights)
-    num_active = jnp.sum(active)
-    scaling = standardisation(particles, simulated, active)
-    observed = jnp.isfinite(observation)
-    xs = scaling.standardise_x(particles)
-    ys = jnp.where(observed, scaling.standardise_y(simulated), 0.0)
+    prior = prior_data(settings, simulate_key, state.log_weights, particles, observation, model)
+    particles, simulated, active, num_active, scaling, observed, xs, ys = prior
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
     data = _local_data(numbers, xs, ys, y_standard, observed, active)
     active_index = jnp.argsort(~active, stable=True)
@@ -290,28 +282,15 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         return Batch(data.x[pair, coordinate], data.y[pair, coordinate], data.x[copy, coordinate],
                      data.y[copy, coordinate], data.gain[coordinate] if structure.enkf_layer else None)
 
-    trend = innovation_trend(state.innovation_trend, simulated, observation, active)
-    lost = ~(trend <= settings.trend_threshold)  # lost track: no training, the local EnKF serves
-    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
-                                                 structure.floor_iterations))
-    training = state.training
-    if not structure.warm_start:
-        training = init_training(settings, structure, reset_key, window, conditioning, particles.dtype)
-    potential_optimizer, transport_optimizer = optimizers(settings, structure)
-    training, trace = train_saddle(
-        train_key, training, sample_batch,
-        budget,
-        potential_net=potential_net, transport_net=transport_net,
-        potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
-        inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
-        record_length=structure.first_iterations, cost_from_layer=True,
-    )
+    # No training while the filter has lost track: the local EnKF serves.
+    training, trace, trend, lost = train(settings, structure, train_key, reset_key, state, prior, observation,
+                                         sample_batch, (window, conditioning), cost_from_layer=True)
     params = training.params
     moved = _move(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer)
 
     z = predictive_check(check_key, model.sample_observation, scaling.restore_x(moved), observation, active)
-    diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, window,
-                               moved, active, z)
+    diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold,
+                                      window, moved, active, z)
     fallback = scaling.restore_x(_move(data, None, True))
     posterior = use_where(~diverged, scaling.restore_x(moved), fallback)
     posterior = jnp.where(jnp.any(observed), posterior, particles)

@@ -30,9 +30,9 @@ does not hurt N = 1000 (benchmarks/static_example.py; also checked on a bimodal 
 
 Defaults (measured on the chapter's static example): ReLU, width 32, one residual block,
 mini-batch 128, 10 T steps per f step, Adam(1e-3) on T and AdamW(1e-4, weight decay 1) on f,
-10,000 outer iterations, smoothing factor 1. The authors' 1e-3 for f diverges after 2,000-4,000
-iterations (J climbs, f's scale grows, the map collapses onto one mode); a slower, weight-decayed
-f is stable beyond 20,000.
+10,000 outer iterations (500 at the later, warm-started updates of a filter), smoothing factor
+1. The authors' 1e-3 for f diverges after 2,000-4,000 iterations (J climbs, f's scale grows, the
+map collapses onto one mode); a slower, weight-decayed f is stable beyond 20,000.
 
 The builder is a recipe: it validates the structure (``OTStructure``, static) and the numbers
 (``OTSettings``: learning rates, weight decay, smoothing factor, thresholds; traced, so a sweep
@@ -174,7 +174,7 @@ class OTUpdate(NamedTuple):
 
 
 def ot(
-    num_iterations: int | tuple[int, int] = 10_000,
+    num_iterations: int | tuple[int, int] = (10_000, 500),
     batch_size: int = 128,
     inner_steps: int = 10,
     width: int = 32,
@@ -201,7 +201,9 @@ def ot(
 
       num_iterations: outer iterations (one f step each) per update; or ``(first, floor)``: the
         authors' filter schedule, ``first`` at the first update, halved at every update down to
-        ``floor`` (e.g. ``(1024, 64)``; meant for warm-started filters).
+        ``floor`` (e.g. ``(1024, 64)``; meant for warm-started filters). The default
+        ``(10_000, 500)`` gives one update its full 10,000 and a filter's warm-started later
+        steps 500 each (a filter with a constant 10,000 spent 8 s a step).
       batch_size: mini-batch size (>= 2) of joint pairs and of independent copies.
       inner_steps: T optimiser steps per outer iteration.
       width, num_blocks, activation: the networks (both f and T); activation in
@@ -374,14 +376,74 @@ def ot_init(settings: OTSettings, key: Array, particles: Array, model: StateSpac
 def ot_apply(settings: OTSettings, key: Array, state: OTState, particles: Array, observation: Array,
              model: StateSpaceModel, *, structure: OTStructure):
     """Shapes checked here; the work is one compiled program (also when called outside jit)."""
+    observation = check_apply_arguments(state, particles, observation)
+    return _apply(settings, key, state, particles, observation, model, structure=structure)
+
+
+def check_apply_arguments(state, particles: Array, observation: Array) -> Array:
+    """Checks ``particles[N, n]`` and ``observation[m]`` against the sizes at init (the state's
+    log-weights and standardisation); returns the observation in the particles' dtype."""
     n, m = state.standardisation.x_mean.shape[0], state.standardisation.y_mean.shape[0]
     num = state.log_weights.shape[0]
     if jnp.shape(particles) != (num, n):
         raise ValueError(f"particles must have shape ({num}, {n}) like at init, got {jnp.shape(particles)}")
     if jnp.shape(observation) != (m,):
         raise ValueError(f"observation must have shape ({m},), got {jnp.shape(observation)}")
-    return _apply(settings, key, state, particles, jnp.asarray(observation, particles.dtype), model,
-                  structure=structure)
+    return jnp.asarray(observation, particles.dtype)
+
+
+class PriorData(NamedTuple):
+    """An update's prior particles (inflated), their simulated observations and standardisation."""
+
+    particles: Array  # [N, n] inflated
+    simulated: Array  # [N, m] Y^i ~ h(. | X^i)
+    active: Array  # [N] bool
+    num_active: Array
+    scaling: Standardisation
+    observed: Array  # [m] bool: the finite components of y
+    xs: Array  # [N, n] standardised particles
+    ys: Array  # [N, m] standardised simulated observations, missing components 0
+
+
+def prior_data(settings: OTSettings, key: Array, log_weights: Array, particles: Array, observation: Array,
+               model: StateSpaceModel) -> PriorData:
+    """Inflate, simulate Y^i ~ h(. | X^i), standardise over the active (unpadded) particles.
+    Missing components (NaN in y) are set to their standardised mean 0 in every training pair
+    (and the caller sets them so in y): a constant carries no information, so the map learnt is
+    T(x, y_observed)."""
+    active = active_mask(log_weights)
+    particles = inflate(particles, active, settings.inflation)
+    simulated = jax.vmap(model.sample_observation)(jax.random.split(key, particles.shape[0]), particles)
+    scaling = standardisation(particles, simulated, active)
+    observed = jnp.isfinite(observation)
+    return PriorData(particles, simulated, active, jnp.sum(active), scaling, observed,
+                     scaling.standardise_x(particles), jnp.where(observed, scaling.standardise_y(simulated), 0.0))
+
+
+def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_key: Array, state,
+          prior: PriorData, observation: Array, sample_batch: Callable, sizes: tuple[int, int],
+          cost_from_layer: bool = False):
+    """Saddle-point training, warm-started from ``state.training`` (unless ``warm_start=False``)
+    and budgeted by the halving schedule; none while the filter has lost track (the trend of its
+    innovations, ``transport/divergence.py``: the EnKF serves until it comes down).
+    ``sizes``: the networks' (x, y) input widths. Returns ``(training, trace, trend, lost)``."""
+    trend = innovation_trend(state.innovation_trend, prior.simulated, observation, prior.active)
+    lost = ~(trend <= settings.trend_threshold)
+    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
+                                                 structure.floor_iterations))
+    training = state.training
+    if not structure.warm_start:
+        training = init_training(settings, structure, reset_key, *sizes, prior.xs.dtype)
+    potential_net, transport_net = networks(structure)
+    potential_optimizer, transport_optimizer = optimizers(settings, structure)
+    training, trace = train_saddle(
+        train_key, training, sample_batch, budget,
+        potential_net=potential_net, transport_net=transport_net,
+        potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
+        inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
+        record_length=structure.first_iterations, cost_from_layer=cost_from_layer,
+    )
+    return training, trace, trend, lost
 
 
 @jax.jit(static_argnames=("structure",))
@@ -390,22 +452,14 @@ def _apply(settings, key, state, particles, observation, model, structure):
     num, n = particles.shape
     simulate_key, train_key, fallback_key, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
-    particles = inflate(particles, active_mask(state.log_weights), settings.inflation)
 
     # 1. Training data: Y^i ~ h(. | X^i), both standardised over the active (unpadded) particles.
-    simulated = jax.vmap(model.sample_observation)(jax.random.split(simulate_key, num), particles)
-    active = active_mask(state.log_weights)
-    num_active = jnp.sum(active)
-    scaling = standardisation(particles, simulated, active)
-    # Missing components (NaN in y) are set to their standardised mean 0 in every training pair
-    # and in y: a constant carries no information, so the map learnt is T(x, y_observed).
-    observed = jnp.isfinite(observation)
+    prior = prior_data(settings, simulate_key, state.log_weights, particles, observation, model)
+    particles, simulated, active, num_active, scaling, observed, xs, ys = prior
 
     def sample_observation(key, x):
         return jnp.where(observed, model.sample_observation(key, x), scaling.y_mean)
 
-    xs = scaling.standardise_x(particles)
-    ys = jnp.where(observed, scaling.standardise_y(simulated), 0.0)
     data = TrainingData(
         xs, ys,
         active_index=jnp.argsort(~active, stable=True),  # mini-batches draw indices below num_active
@@ -415,28 +469,15 @@ def _apply(settings, key, state, particles, observation, model, structure):
         scaling=scaling,
     )
 
-    # 2. Saddle-point training, warm-started (or not) and budgeted by the halving schedule; none
-    #    while the filter has lost track (the EnKF serves until the innovations come down).
-    trend = innovation_trend(state.innovation_trend, simulated, observation, active)
-    lost = ~(trend <= settings.trend_threshold)
-    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
-                                                 structure.floor_iterations))
-    training = state.training
-    if not structure.warm_start:
-        training = init_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
-    potential_optimizer, transport_optimizer = optimizers(settings, structure)
-    training, trace = train_saddle(
-        train_key, training,
+    # 2. Saddle-point training (none while the filter has lost track).
+    training, trace, trend, lost = train(
+        settings, structure, train_key, reset_key, state, prior, observation,
         lambda batch_key: sample_batch(
             batch_key, data, sample_observation, batch_size=structure.batch_size,
             smoothing=structure.smoothing, fresh_observations=structure.fresh_observations,
             enkf_layer=structure.enkf_layer,
         ),
-        budget,
-        potential_net=potential_net, transport_net=transport_net,
-        potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
-        inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
-        record_length=structure.first_iterations,
+        (n, ys.shape[1]),
     )
     params = training.params
 
