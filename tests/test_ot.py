@@ -389,3 +389,7 @@ def test_a_filter_that_lost_track_skips_training_and_uses_the_enkf_until_the_tre
     _, healthy, healthy_info = update.apply(jax.random.key(2), state, particles, y, model)
     assert int(healthy.training.transport_opt_state[0].count) == 8 * 10  # floor of the schedule at update 3
     assert float(healthy_info.innovation_trend) < float(info.innovation_trend)
+    # An ensemble that has been far wider than its errors (average 0.1 < 0.3) lost track too.
+    _, wide, wide_info = update.apply(jax.random.key(2), state._replace(innovation_trend=jnp.asarray(0.1)),
+                                      particles, y, model)
+    assert bool(wide_info.diverged) and int(wide.training.transport_opt_state[0].count) == 0

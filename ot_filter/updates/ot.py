@@ -58,7 +58,7 @@ from ot_filter.model import StateSpaceModel
 from ot_filter.transport.batches import TrainingData, sample_batch
 from ot_filter.transport.diagnostics import c_concavity_min_eigenvalue
 from ot_filter.transport.divergence import diverged as divergence_test
-from ot_filter.transport.divergence import innovation_trend
+from ot_filter.transport.divergence import innovation_trend, lost_track
 from ot_filter.transport.divergence import predictive_z as predictive_check
 from ot_filter.transport.networks import ACTIVATIONS, PotentialNetwork, TransportNetwork
 from ot_filter.transport.saddle import (
@@ -225,9 +225,9 @@ def ot(
       inflation: multiplies the prior particles' anomalies before the update (as ``enkf``'s):
         chaotic models with few particles need a little (e.g. 1.04 on Lorenz-96).
       trend_threshold: the moving average over updates of the normalised innovation (about 1
-        while the filter tracks; ``transport/divergence.py``) above this means the filter lost
-        track: the update then skips training, uses the EnKF and restarts the networks (and the
-        iteration schedule) until the average comes down.
+        while the filter tracks; ``transport/divergence.py``) above this (or below 0.3) means the
+        filter lost track: the update then skips training, uses the EnKF and restarts the
+        networks (and the iteration schedule) until the average is back in range.
       concavity_step: difference step of the c-concavity check (standardised units).
       prior_smoothing: c in the kernel bandwidth h = c (4 / (n + 2))^(1/(n+4)) N^(-1/(n+4))
         (Silverman's rule, standardised units) of the smoothed prior the map is trained on
@@ -428,7 +428,7 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
     innovations, ``transport/divergence.py``: the EnKF serves until it comes down).
     ``sizes``: the networks' (x, y) input widths. Returns ``(training, trace, trend, lost)``."""
     trend = innovation_trend(state.innovation_trend, prior.simulated, observation, prior.active)
-    lost = ~(trend <= settings.trend_threshold)
+    lost = lost_track(trend, settings.trend_threshold)
     budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
                                                  structure.floor_iterations))
     training = state.training
