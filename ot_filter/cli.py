@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--quick", action="store_true", help="small settings: under two minutes on 2 cores")
     run.add_argument("--no-progress", action="store_true", help="no progress bar or step reports")
     demo = commands.add_parser("demo", help="Lorenz-63 with EnKF and SIR, and the bimodal example where the OT "
-                                            "filters hold both modes (about a minute)")
+                                            "filters hold both modes (about two minutes)")
     demo.add_argument("--out", default="ot-filter-demo", help="output directory")
     demo.add_argument("--seed", type=int, default=0)
     gallery = commands.add_parser("gallery", help="every experiment with --quick; figures into --out")
