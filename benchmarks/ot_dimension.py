@@ -165,8 +165,8 @@ def plot(results, path):
                ylabel="W1 to the exact marginals (mean over coordinates)",
                title=("Static example, one update (N = 1000)" if part == "static"
                       else "Dynamic example, filter (N = 1000, t ≥ 1)"))
-        ax.set_xticks(dims)
-        ax.set_xticklabels([str(d) for d in dims])
+        ax.set_xticks(dims, [str(d) for d in dims])
+        ax.set_xticks([], minor=True)  # no log-scale minor labels over the chosen ticks
         ax.grid(alpha=0.3, which="both")
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
