@@ -20,7 +20,9 @@ Structure that makes this exact or approximate:
 
 - Coordinates that are independent a priori and observed separately (the chapter's examples):
   ``radius = state_radius = 0`` gives windows {i} and {y_i}; the local problem IS coordinate i's
-  Bayes problem, and the shared map is exact in structure (the problems are identical in law).
+  Bayes problem. Where the coordinates' priors are alike (one update from N(0, I)) one map is
+  exact in structure; in a filter they come to differ in shape, and the networks also read each
+  window's prior quantiles (``prior_context``), so that one map serves them all.
 - A lattice (Lorenz-96's ring): windows mean the same relative positions everywhere, so sharing
   assumes the local problems are alike (translation invariance; per-coordinate standardisation
   absorbs different scales). Observations beyond ``radius`` are ignored, as in the LETKF.
@@ -33,13 +35,12 @@ apart.
 EnKF layer (``enkf_layer=True``): each coordinate's local gain K_i = Cov(X_W, Y_O) Cov(Y_O)^-1
 from all particles, and T's input is x_W + K_i (y_O - Y_O). The transport cost is measured from
 that input (``saddle.transport_cost``): T corrects the local EnKF analysis and is the identity
-where it is already right. The same local gain gives the
-fallback when training diverges: the local perturbed-observation EnKF (the layer alone), whose
+where it is already right. The same local gain gives the fallback when training diverges: the local perturbed-observation EnKF (the layer alone), whose
 cost is also linear in n (the global EnKF fallback of ``ot()`` would not localise).
 
-Training has no smoothed prior and no fresh observations: with N n local pairs the networks do
-not resolve single pairs at the particle counts where the global update needs them, and the
-observations of a jittered state would need the whole state. The numbers and the rest of the
+Training has no smoothed prior and no fresh observations: the observations of a jittered state
+would need the whole state, and there are N n local pairs (their small-N behaviour, N = 100 on
+the static example, is not measured yet). The numbers and the rest of the
 structure are ``ot()``'s (``updates.ot.recipe``).
 """
 
