@@ -389,7 +389,36 @@ def test_a_filter_that_lost_track_skips_training_and_uses_the_enkf_until_the_tre
     _, healthy, healthy_info = update.apply(jax.random.key(2), state, particles, y, model)
     assert int(healthy.training.transport_opt_state[0].count) == 8 * 10  # floor of the schedule at update 3
     assert float(healthy_info.innovation_trend) < float(info.innovation_trend)
-    # An ensemble that has been far wider than its errors (average 0.1 < 0.3) lost track too.
-    _, wide, wide_info = update.apply(jax.random.key(2), state._replace(innovation_trend=jnp.asarray(0.1)),
-                                      particles, y, model)
+    # An ensemble that has been far wider than its errors (average 0.1 < 0.3) lost track too,
+    # with enough observed components (40) for chance not to get there; with 2 it might.
+    _, _, two_info = update.apply(jax.random.key(2), state._replace(innovation_trend=jnp.asarray(0.1)),
+                                  particles, y, model)
+    assert not bool(two_info.diverged)
+    wide_model = otf.models.squared_observation(dim=40)
+    wide_particles = 3.0 + 0.05 * jax.random.normal(jax.random.key(0), (64, 40))
+    wide_state = update.init(jax.random.key(1), wide_particles, wide_model)._replace(
+        num_updates=jnp.asarray(3), innovation_trend=jnp.asarray(0.1))
+    _, wide, wide_info = update.apply(jax.random.key(2), wide_state, wide_particles, jnp.full(40, 9.0), wide_model)
     assert bool(wide_info.diverged) and int(wide.training.transport_opt_state[0].count) == 0
+
+
+def test_the_low_trend_bound_flags_a_too_wide_ensemble_but_not_chance():
+    # The moving average of a tracking filter's normalised innovations (each component a squared
+    # standard normal) against lost_track, over 20,000 updates and m observed components; and an
+    # ensemble three times too wide (innovations / 3) at m = 40, caught within 12 updates.
+    from ot_filter.transport.divergence import TREND_SMOOTHING, lost_track
+
+    rng = np.random.default_rng(0)
+    for m in (1, 2, 5, 40):
+        values = (rng.standard_normal((20_000, m)) ** 2).mean(axis=1)
+        trends, trend = np.empty_like(values), 1.0
+        for i, value in enumerate(values):
+            trend = trends[i] = TREND_SMOOTHING * trend + (1 - TREND_SMOOTHING) * value
+        alarms = int(np.sum(lost_track(jnp.asarray(trends, jnp.float32), 1e9, m)))
+        assert alarms <= 2, (m, alarms)  # 4 chance stds below 1: ~3e-5 per update if Gaussian
+    trend = 1.0
+    for step, value in enumerate((rng.standard_normal((12, 40)) ** 2).mean(axis=1) / 9):
+        trend = TREND_SMOOTHING * trend + (1 - TREND_SMOOTHING) * value
+        if bool(lost_track(jnp.asarray(trend, jnp.float32), 1e9, 40)):
+            break
+    assert bool(lost_track(jnp.asarray(trend, jnp.float32), 1e9, 40)), trend

@@ -89,3 +89,41 @@ def test_particle_sharding_checks_the_particle_count():
         with pytest.raises(ValueError, match="must be divisible"):
             otf.run_filter(jax.random.key(1), model, otf.enkf(), observations, count * 3 + 1,
                            particle_sharding=sharding)
+
+
+SIMULATIONS_CHILD = textwrap.dedent(
+    """
+    import json, os
+    from ot_filter.cli import _use_every_cpu_core
+    _use_every_cpu_core()  # what the CLI does before JAX starts
+    import jax, jax.numpy as jnp, numpy as np
+    import ot_filter as otf
+    from ot_filter.experiments._common import compile_and_run
+
+    model = otf.models.lorenz63()
+    keys = jax.random.split(jax.random.key(0), 5)
+    observations = jax.vmap(lambda k: otf.simulate(k, model, 20)[1])(keys)
+    one = lambda k, y: otf.run_filter(k, model, otf.enkf(), y, 40, save_every=0).mean
+    padded, _ = compile_and_run(jax.vmap(one), keys, observations)  # 5 simulations on 2 devices
+    alone = np.stack([np.asarray(jax.jit(one)(k, y)) for k, y in zip(keys, observations)])
+    total, _ = compile_and_run(lambda k, y: jnp.sum(jax.vmap(one)(k, y)), keys, observations)
+    print(json.dumps({"devices": len(jax.devices()), "cores": os.cpu_count(), "shape": list(padded.shape),
+                      "diff": float(np.max(np.abs(padded - alone))),
+                      "total_diff": float(abs(total - alone.sum()) / abs(alone.sum()))}))
+    """
+)
+
+
+def test_simulations_are_padded_to_the_devices_and_cut_back():
+    # 5 simulations on 2 host devices run as 3 + 3 (the last one repeated) and come back as the
+    # 5 that were asked for, each equal to its own unsharded run; a function whose output does not
+    # lead with the simulations (a sum over them) is not padded.
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    code = "import os; os.cpu_count = lambda: 2\n" + SIMULATIONS_CHILD
+    child = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert child.returncode == 0, child.stderr[-3000:]
+    out = json.loads(child.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 2 and out["shape"] == [5, 20, 3], out
+    # Separate programs round differently over 20 chaotic cycles; far below the filter's error.
+    assert out["diff"] < 1e-3 and out["total_diff"] < 1e-5, out

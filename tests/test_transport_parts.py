@@ -65,8 +65,9 @@ def test_predictive_z_and_each_divergence_condition():
     expected = np.max(np.abs(np.asarray(y) - np.asarray(x).mean(0)) / np.asarray(x).std(0))
     np.testing.assert_allclose(z, expected, rtol=1e-5)
     moved = (x - x.mean(0)) / x.std(0) * 0.5
+    prior = (x - x.mean(0)) / x.std(0)
     healthy = dict(trace_finite=jnp.array(True), smoothed_loss=jnp.asarray(1.0), threshold=10.0, n=2,
-                   moved_standard=moved, active=active, z=jnp.asarray(2.0))
+                   moved_standard=moved, active=active, z=jnp.asarray(2.0), prior_standard=prior)
     assert not bool(divergence.diverged(**healthy))
     for change in (dict(trace_finite=jnp.array(False)), dict(smoothed_loss=jnp.asarray(25.0)),
                    dict(moved_standard=moved.at[3, 1].set(jnp.nan)), dict(moved_standard=moved * 30),
@@ -76,6 +77,15 @@ def test_predictive_z_and_each_divergence_condition():
         assert bool(divergence.diverged(**{**healthy, **change})), change
     _, spread = masked_mean_and_std(moved.at[7, 0].set(7.0), active)
     assert float(spread.max()) < divergence.MAX_POSTERIOR_SPREAD
+    # ... but not when the prior itself reaches that far (a Lorenz-63 forecast has particles
+    # 8 stds out) and the particle stays within TRANSPORT_MARGIN of the prior's reach
+    far_prior = prior.at[7, 0].set(8.0)
+    assert not bool(divergence.diverged(**{**healthy, "prior_standard": far_prior,
+                                          "moved_standard": moved.at[7, 0].set(8.0 + divergence.TRANSPORT_MARGIN - 0.1)}))
+    assert bool(divergence.diverged(**{**healthy, "prior_standard": far_prior,
+                                      "moved_standard": moved.at[7, 0].set(8.0 + divergence.TRANSPORT_MARGIN + 0.1)}))
+    # the reach is per coordinate: coordinate 1 still has the absolute bound
+    assert bool(divergence.diverged(**{**healthy, "prior_standard": far_prior, "moved_standard": moved.at[7, 1].set(7.0)}))
     # non-finite padding rows do not count
     assert not bool(divergence.diverged(**{**healthy, "moved_standard": moved.at[3].set(jnp.inf),
                                           "active": active.at[3].set(False)}))

@@ -8,6 +8,7 @@ from functools import partial
 from typing import Callable, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -83,19 +84,41 @@ def compile_and_run(function: Callable, *args, shard: bool = True) -> tuple[obje
 
     With several devices (GPUs, or CPU host devices: ``host_devices_for_cpu_cores``) and
     ``shard``, the leading axis of every argument (independent simulations) is split across them
-    with ``jax.sharding``; XLA partitions the vmapped program accordingly.
+    with ``jax.sharding``; XLA partitions the vmapped program accordingly. When every argument
+    and every output leads with the same simulation count S that the devices do not divide, the
+    arguments are padded (the last simulation repeated) to the next multiple and the outputs cut
+    back to S: 5 simulations on 2 cores run as 3 + 3 instead of 5 on one.
     """
     devices = jax.devices()
-    if shard and len(devices) > 1 and all(np.shape(a)[0] % len(devices) == 0 for a in args):
-        sharding = NamedSharding(Mesh(np.asarray(devices), ("simulations",)), PartitionSpec("simulations"))
-        args = tuple(jax.device_put(a, sharding) for a in args)
+    count = None
+    if shard and len(devices) > 1:
+        sizes = {np.shape(a)[0] if np.ndim(a) else None for a in args}
+        if len(sizes) == 1 and None not in sizes and next(iter(sizes)) % len(devices):
+            count = next(iter(sizes))
+            padded = -(-count // len(devices)) * len(devices)
+            padded_args = tuple(_repeat_last(a, padded) for a in args)
+            outputs = jax.eval_shape(function, *padded_args)
+            if all(np.ndim(o) and o.shape[0] == padded for o in jax.tree.leaves(outputs)):
+                args = padded_args
+            else:
+                count = None
+        if all(np.ndim(a) and np.shape(a)[0] % len(devices) == 0 for a in args):
+            sharding = NamedSharding(Mesh(np.asarray(devices), ("simulations",)), PartitionSpec("simulations"))
+            args = tuple(jax.device_put(a, sharding) for a in args)
     start = time.perf_counter()
     compiled = jax.jit(function).lower(*args).compile()
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
     output = jax.block_until_ready(compiled(*args))
     run_s = time.perf_counter() - start
+    if count is not None:
+        output = jax.tree.map(lambda leaf: leaf[:count], output)
     return jax.tree.map(np.asarray, output), {"compile_s": compile_s, "run_s": run_s}
+
+
+def _repeat_last(array, size: int):
+    """``array`` with its last row repeated up to ``size`` rows (padding that is cut away)."""
+    return jnp.concatenate([array, jnp.repeat(array[-1:], size - array.shape[0], axis=0)])
 
 
 def host_devices_for_cpu_cores() -> None:

@@ -441,7 +441,8 @@ EXPERIMENTS = {
         ),
         Experiment(
             "lorenz63", "the chapter's Lorenz-63 experiment (x1, x3 observed): MSE over time",
-            dict(_COMMON, particles=(1000,), steps=500, simulations=10, block=5,
+            # one block of 10: the simulations shard over the CPU cores (5 + 5) in one program
+            dict(_COMMON, particles=(1000,), steps=500, simulations=10, block=10,
                  methods=("enkf", "sir", "ot", "ot_enkf")),
             dict(particles=(200,), steps=250, simulations=2, block=2, methods=("enkf", "sir", "ot")),
             (), ("enkf", "sir", "ot", "ot_enkf"), _lorenz63_cell, _lorenz63_plot, minimum_steps=151,

@@ -291,7 +291,7 @@ def _apply(numbers, key, state, particles, observation, model, structure):
 
     z = predictive_check(check_key, model.sample_observation, scaling.restore_x(moved), observation, active)
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold,
-                                      window, moved, active, z)
+                                      window, moved, active, z, xs)
     fallback = scaling.restore_x(_move(data, None, True))
     posterior = use_where(~diverged, scaling.restore_x(moved), fallback)
     posterior = jnp.where(jnp.any(observed), posterior, particles)

@@ -428,7 +428,7 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
     innovations, ``transport/divergence.py``: the EnKF serves until it comes down).
     ``sizes``: the networks' (x, y) input widths. Returns ``(training, trace, trend, lost)``."""
     trend = innovation_trend(state.innovation_trend, prior.simulated, observation, prior.active)
-    lost = lost_track(trend, settings.trend_threshold)
+    lost = lost_track(trend, settings.trend_threshold, jnp.sum(jnp.isfinite(observation)))
     budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
                                                  structure.floor_iterations))
     training = state.training
@@ -490,7 +490,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
     z = predictive_check(jax.random.fold_in(key, 4), model.sample_observation,
                          scaling.restore_x(moved), observation, active)
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
-                                      moved, active, z)
+                                      moved, active, z, xs)
     min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data)
 
     # 5. Fall back to the EnKF where training diverged, and restart the networks there.
