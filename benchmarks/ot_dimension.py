@@ -1,6 +1,9 @@
 """OT at scale: the static and dynamic examples over the state dimension, against EXACT posteriors.
 
     PYTHONPATH=. python benchmarks/ot_dimension.py [--dims 2,5,10,20,50] [--part static|dynamic|both]
+        [--methods enkf,letkf,sir,ot,local_ot]
+
+A dynamic run merges its rows by n into the saved JSON (a later n added to earlier ones).
 
 Every method on the same priors / truths: EnKF, LETKF (radius 0: told the coordinates are
 independent), SIR, the global OT update and the localised one (radius 0). Metrics
@@ -59,21 +62,21 @@ def static_rows(dims, seeds):
     return rows
 
 
-def dynamic_rows(dims, simulations, steps, save=None):
+def dynamic_rows(dims, simulations, steps, save=None, methods=METHODS):
     rows = []
     for dim in dims:
         start = time.perf_counter()
         result = run_dynamic_example(jax.random.key(2026), dim=dim, num_particles=1000, num_steps=steps,
-                                     num_simulations=simulations, methods=METHODS, bandwidth=4.0,
+                                     num_simulations=simulations, methods=methods, bandwidth=4.0,
                                      standardise=True, average_from=1.0, keep=0)
         summary = result["metrics"]
         row = {"dim": dim, "seconds": time.perf_counter() - start, "floor": summary["floor"]}
-        for name in METHODS:
+        for name in methods:
             row[name] = dict(summary[name]["exact"], published_mmd=summary[name]["mmd_average"],
                              seconds_per_step=summary[name]["seconds_per_step"],
                              diverged_steps=summary[name].get("diverged_steps", 0))
         rows.append(row)
-        print(f"dynamic n={dim}: " + ", ".join(f"{n} {row[n]['w1']['mean']:.3f}" for n in METHODS)
+        print(f"dynamic n={dim}: " + ", ".join(f"{n} {row[n]['w1']['mean']:.3f}" for n in methods)
               + f"; floor {row['floor']['w1']['mean']:.3f}; {row['seconds']:.0f} s", flush=True)
         if save is not None:
             save(rows)  # each n as it finishes: a long sweep cut short keeps what it measured
@@ -115,7 +118,11 @@ def cost_rows(dims, repeats=3):
 
 
 def _cell(entry):
-    return f"{entry['mean']:.3f} ± {entry['stderr']:.3f}"
+    return "–" if entry is None else f"{entry['mean']:.3f} ± {entry['stderr']:.3f}"
+
+
+def _entry(row, name, metric):
+    return row[name][metric] if name in row else None  # a method the run left out
 
 
 def _table(title, rows, extra=None):
@@ -126,7 +133,7 @@ def _table(title, rows, extra=None):
         lines += [f"### {label}", "", "| n | " + " | ".join(LABELS[n] for n in METHODS) + " | floor (N exact) |",
                   "|--:|" + "--:|" * (len(METHODS) + 1)]
         for row in rows:
-            lines.append(f"| {row['dim']} | " + " | ".join(_cell(row[n][metric]) for n in METHODS)
+            lines.append(f"| {row['dim']} | " + " | ".join(_cell(_entry(row, n, metric)) for n in METHODS)
                          + f" | {_cell(row['floor'][metric])} |")
         lines.append("")
     if extra:
@@ -139,9 +146,10 @@ def _dynamic_extra(rows):
              "| n | " + " | ".join(LABELS[n] for n in METHODS) + " | OT s/step (global, local) | diverged steps (global, local) |",
              "|--:|" + "--:|" * (len(METHODS) + 2)]
     for row in rows:
-        lines.append(f"| {row['dim']} | " + " | ".join(_cell(row[n]["published_mmd"]) for n in METHODS)
-                     + f" | {row['ot']['seconds_per_step']:.3f}, {row['local_ot']['seconds_per_step']:.3f}"
-                     + f" | {row['ot']['diverged_steps']}, {row['local_ot']['diverged_steps']} |")
+        ot, local = row.get("ot", {}), row.get("local_ot", {})
+        lines.append(f"| {row['dim']} | " + " | ".join(_cell(_entry(row, n, "published_mmd")) for n in METHODS)
+                     + f" | {ot.get('seconds_per_step', float('nan')):.3f}, {local.get('seconds_per_step', float('nan')):.3f}"
+                     + f" | {ot.get('diverged_steps', '–')}, {local.get('diverged_steps', '–')} |")
     return lines + [""]
 
 
@@ -157,8 +165,9 @@ def plot(results, path):
         rows = results[part]
         dims = [r["dim"] for r in rows]
         for name in METHODS:
-            ax.errorbar(dims, [r[name]["w1"]["mean"] for r in rows], [2 * r[name]["w1"]["stderr"] for r in rows],
-                        marker="o", capsize=3, label=LABELS[name])
+            have = [r for r in rows if name in r]
+            ax.errorbar([r["dim"] for r in have], [r[name]["w1"]["mean"] for r in have],
+                        [2 * r[name]["w1"]["stderr"] for r in have], marker="o", capsize=3, label=LABELS[name])
         ax.plot(dims, [r["floor"]["w1"]["mean"] for r in rows], "k--", label="N exact samples (floor)")
         ax.plot(dims, [2 * r["floor"]["w1"]["mean"] for r in rows], "k:", label="twice the floor")
         ax.set(xscale="log", yscale="log", xlabel="state dimension n",
@@ -203,8 +212,10 @@ def main():
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--simulations", type=int, default=10)
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--out", default="benchmarks/results")
     args = parser.parse_args()
+    methods = tuple(args.methods.split(","))
     dims = [int(v) for v in args.dims.split(",")]
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, "ot_dimension.json")
@@ -218,13 +229,17 @@ def main():
         results["static_seeds"] = args.seeds
         write_text_atomic(path, json.dumps(results, indent=1))
     if args.part in ("dynamic", "both", "all"):
+        earlier = {row["dim"]: row for row in results.get("dynamic", [])
+                   if results.get("dynamic_simulations") == args.simulations}
+
         results["dynamic_simulations"] = args.simulations
 
         def save(rows):
-            results["dynamic"] = rows
+            merged = {**earlier, **{row["dim"]: row for row in rows}}
+            results["dynamic"] = [merged[dim] for dim in sorted(merged)]
             write_text_atomic(path, json.dumps(results, indent=1))
 
-        results["dynamic"] = dynamic_rows(dims, args.simulations, args.steps, save)
+        save(dynamic_rows(dims, args.simulations, args.steps, save, methods))
     write_text_atomic(path, json.dumps(results, indent=1))
     write_report(results, args.out)
 

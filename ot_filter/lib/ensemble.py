@@ -95,9 +95,12 @@ def _weighted_anomalies(particles: Array, log_weights: Array):
     return weights, anomalies, 1.0 - sum_squared
 
 
-def inflate(particles: Array, active: Array, inflation) -> Array:
+def inflate(particles: Array, active: Array, inflation, mean_and_anomalies=None) -> Array:
     """Multiplicative inflation of the anomalies about the active rows' mean: mean + inflation
-    (x - mean); inflation 1 leaves the particles exactly as they are (no ulp change)."""
-    num_active = jnp.sum(active, dtype=jnp.int32)
-    mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
+    (x - mean); inflation 1 leaves the particles exactly as they are (no ulp change).
+    ``mean_and_anomalies``: ``masked_mean_and_anomalies`` of the particles, where the caller has
+    them (the EnKF's hot path: not computed twice)."""
+    if mean_and_anomalies is None:
+        mean_and_anomalies = masked_mean_and_anomalies(particles, active, jnp.sum(active, dtype=jnp.int32))
+    mean, anomalies = mean_and_anomalies
     return jnp.where(inflation == 1.0, particles, mean + inflation * anomalies)

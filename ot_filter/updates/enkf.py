@@ -160,8 +160,8 @@ def enkf_apply(settings: EnKFSettings, key: Array, state: UniformWeightsState, p
     active = active_mask(state.log_weights)
     num_active = count_active(state.log_weights)
     mean, anomalies = masked_mean_and_anomalies(particles, active, num_active)
+    particles = inflate(particles, active, settings.inflation, (mean, anomalies))
     anomalies = settings.inflation * anomalies
-    particles = inflate(particles, active, settings.inflation)
     if not perturbed and rotate:
         # Rotated square root: a Cholesky root on the complement of the ones vector instead of
         # the symmetric root (no eigen-decomposition; the same ensemble in law, see there).
