@@ -168,8 +168,11 @@ def plot(results, path):
             have = [r for r in rows if name in r]
             ax.errorbar([r["dim"] for r in have], [r[name]["w1"]["mean"] for r in have],
                         [2 * r[name]["w1"]["stderr"] for r in have], marker="o", capsize=3, label=LABELS[name])
-        ax.plot(dims, [r["floor"]["w1"]["mean"] for r in rows], "k--", label="N exact samples (floor)")
-        ax.plot(dims, [2 * r["floor"]["w1"]["mean"] for r in rows], "k:", label="twice the floor")
+        # markers too: a sweep with one n still shows its floor
+        ax.plot(dims, [r["floor"]["w1"]["mean"] for r in rows], "k--", marker="_", markersize=14,
+                label="N exact samples (floor)")
+        ax.plot(dims, [2 * r["floor"]["w1"]["mean"] for r in rows], "k:", marker="_", markersize=14,
+                label="twice the floor")
         ax.set(xscale="log", yscale="log", xlabel="state dimension n",
                ylabel="W1 to the exact marginals (mean over coordinates)",
                title=("Static example, one update (N = 1000)" if part == "static"
