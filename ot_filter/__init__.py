@@ -1,7 +1,8 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``ot``, ``local_ot``);
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``ot``, ``local_ot``, and ``amortised_ot`` with a map trained offline by
+``amortised``);
 ``localisation`` describes where the state and observations lie (``ring``, ``points``) and builds
 the taper and the local windows; ``run_filter`` composes them into a
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference. ``continuous`` holds the continuous-time part
@@ -31,6 +32,8 @@ from ot_filter.updates import (
     resample_indices,
     sir,
 )
+from ot_filter.updates.amortised import amortised_ot
+from ot_filter import amortised
 
 __version__ = "0.1.0"
 
@@ -50,6 +53,8 @@ __all__ = [
     "SIRState",
     "SDEModel",
     "StateSpaceModel",
+    "amortised",
+    "amortised_ot",
     "continuous",
     "enkf",
     "kalman_filter",

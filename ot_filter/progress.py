@@ -23,7 +23,7 @@ from typing import Callable, Iterator
 import jax
 import numpy as np
 
-__all__ = ["every_fraction", "maybe_report", "progress_listener"]
+__all__ = ["every_fraction", "maybe_report", "progress_listener", "report"]
 
 _LISTENERS: list[Callable[[int, int], None]] = []
 
@@ -32,6 +32,11 @@ def _dispatch(done, total) -> None:
     done, total = int(np.max(done)), int(np.max(total))
     for listener in list(_LISTENERS):
         listener(done, total)
+
+
+def report(done: int, total: int) -> None:
+    """From host code (a loop of compiled chunks, e.g. offline training): tell the listeners."""
+    _dispatch(done, total)
 
 
 @contextlib.contextmanager

@@ -138,3 +138,27 @@ def test_in_scan_progress_reports_and_is_absent_when_off():
         assert reports == []
     with pytest.raises(ValueError, match="progress must be an int >= 0"):
         otf.run_filter(jax.random.key(1), model, otf.enkf(), observations, 10, progress=-1)
+
+
+@pytest.mark.long
+def test_an_amortised_map_is_trained_once_stored_in_the_run_and_reused_by_a_later_run(tmp_path):
+    from ot_filter.amortised import load_map
+    from ot_filter.runner import run_experiment
+
+    small = dict(particles=(40,), steps=3, simulations=2, block=1, map_iterations=60)
+    first = run_experiment("dynamic", dict(small, methods=("amortised", "amortised_warm")), str(tmp_path / "first"),
+                           progress=False, command=["test"], log=lambda line: None)
+    stored = tmp_path / "first" / "maps" / "dynamic-n2"
+    assert (stored / "map.json").exists() and (stored / "history.npz").exists()
+    trained = load_map(stored, model="dynamic-n2", state_dim=2)
+    assert trained.info["iterations"] == 60 and trained.info["rounds"] == 3
+    rows = {row["method"]: row for row in first.metrics["results"]}
+    assert set(rows) == {"amortised", "amortised_warm"}
+    for row in rows.values():
+        assert np.all(np.isfinite(row["per_simulation"]["w1"]["values"]))
+    written = os.path.getmtime(stored / "map.json")
+    # A later run (another directory) that points at the stored maps trains nothing.
+    run_experiment("dynamic", dict(small, methods=("amortised",), maps=str(tmp_path / "first" / "maps")),
+                   str(tmp_path / "second"), progress=False, command=["test"], log=lambda line: None)
+    assert os.path.getmtime(stored / "map.json") == written
+    assert not (tmp_path / "second" / "maps").exists()

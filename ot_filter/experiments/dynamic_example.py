@@ -240,6 +240,7 @@ def run_dynamic_example(
     sir_reference: int = 0,
     keep: int = 1,
     progress: int = 0,
+    extra_updates: dict | None = None,
 ) -> dict:
     """Filters ``num_simulations`` independent trajectories with every method; measures MMD to the
     exact posterior at every time.
@@ -254,6 +255,8 @@ def run_dynamic_example(
         resampled particles) and its own drift off the exact mode symmetry.
       keep: simulations whose particles are kept in ``arrays`` (for figures).
       progress: report every this many steps to ``ot_filter.progress`` listeners (0: off).
+      extra_updates: ``{name: update}`` run after the named methods on the same truths (e.g. an
+        amortised OT filter, ``experiments/amortised.py``).
 
     Returns:
       ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``.
@@ -262,7 +265,11 @@ def run_dynamic_example(
         raise ValueError("num_steps and num_simulations must be >= 1")
     model = dynamic_model(dim)
     # Localised methods are told that the coordinates are independent (radius 0: own y only).
-    updates = make_updates(methods, ot_options, OT_FILTER_OPTIONS, model=model, radius=0.0)
+    updates = make_updates(methods, ot_options, OT_FILTER_OPTIONS, model=model, radius=0.0) if methods or not extra_updates else {}
+    clash = set(updates) & set(extra_updates or {})
+    if clash:
+        raise ValueError(f"extra_updates repeat methods already run: {sorted(clash)}")
+    updates.update(extra_updates or {})
     truth_key, filter_key, reference_key = jax.random.split(key, 3)
     compare_key = jax.random.fold_in(reference_key, 1)
     states, observations = simulate_truths(truth_key, model, num_steps, num_simulations)

@@ -57,11 +57,13 @@ _SETTING = dict(dt=TIME_STEP, integrator="euler", steps_per_observation=1, obser
                 observation_noise_std=10.0**0.5, initial_std=10.0)
 
 
-def lorenz63_models():
+def lorenz63_models(observed: Sequence[int] = (0, 2)):
     """``(truth_model, filter_model)`` of the chapter's setting (see the module docstring). Models
-    are pytrees of bound functions compared by value: rebuilding them reuses compiled programs."""
-    truth = lorenz63(process_noise_std=0.0, initial_mean=(25.0, 25.0, 25.0), **_SETTING)
-    filtering = lorenz63(process_noise_std=0.1**0.5, initial_mean=(0.0, 0.0, 0.0), **_SETTING)
+    are pytrees of bound functions compared by value: rebuilding them reuses compiled programs.
+    ``observed``: the observed components (the chapter's 1 and 3; e.g. ``(0,)``: x1 only)."""
+    setting = dict(_SETTING, observed=tuple(observed))
+    truth = lorenz63(process_noise_std=0.0, initial_mean=(25.0, 25.0, 25.0), **setting)
+    filtering = lorenz63(process_noise_std=0.1**0.5, initial_mean=(0.0, 0.0, 0.0), **setting)
     return truth, filtering
 
 
@@ -89,14 +91,22 @@ def run_lorenz63(
     save_every: int = 5,
     reference_particles: int = 0,
     progress: int = 0,
+    observed: Sequence[int] = (0, 2),
+    extra_updates: dict | None = None,
 ) -> dict:
     """Runs every method on ``num_simulations`` independent truths (vmapped, one compiled program
     per method). Returns ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``; the arrays hold
     the first simulation's truth and the particles of every ``save_every``-th step for figures.
     ``reference_particles`` > 0 adds a SIR with that many particles (saved: its mean only);
-    ``progress`` > 0 reports every that many steps to ``ot_filter.progress`` listeners."""
-    truth_model, filter_model = lorenz63_models()
-    updates = _updates(methods, ot_options)
+    ``progress`` > 0 reports every that many steps to ``ot_filter.progress`` listeners;
+    ``observed``: the observed components; ``extra_updates``: ``{name: update}`` run after the
+    named methods on the same truths (e.g. an amortised OT filter, ``experiments/amortised.py``)."""
+    truth_model, filter_model = lorenz63_models(observed)
+    updates = _updates(methods, ot_options) if methods or not extra_updates else {}
+    clash = set(updates) & set(extra_updates or {})
+    if clash:
+        raise ValueError(f"extra_updates repeat methods already run: {sorted(clash)}")
+    updates.update(extra_updates or {})
     if reference_particles:
         updates["reference"] = sir()
     truth_key, filter_key = jax.random.split(key)
@@ -104,6 +114,7 @@ def run_lorenz63(
     times = TIME_STEP * np.arange(1, num_steps + 1)
     settled_from = int(np.searchsorted(times, SETTLE_TIME, side="right"))
     summary = {"num_particles": num_particles, "num_steps": num_steps, "num_simulations": num_simulations,
+               "observed": list(observed),
                "ot_options": {k: (list(v) if isinstance(v, tuple) else v)
                               for k, v in dict(OT_OPTIONS, **(ot_options or {})).items()},
                "ot_enkf_layer_options": {"potential_optimizer": "optax.adam(1e-3)"},

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import time
 from typing import Callable, NamedTuple
 
@@ -117,7 +118,7 @@ def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=Fa
 
 
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
-          "local_ot": "OT, localised",
+          "local_ot": "OT, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
           "constant": "FPF, constant gain", "kernel": "FPF, kernel gain", "learned": "FPF, learned gain"}
 
 
@@ -180,15 +181,34 @@ DYNAMIC_KERNELS = {  # (bandwidth, standardise): the chapter's settings for each
 }
 
 
+AMORTISED_METHODS = ("amortised", "amortised_warm")
+
+
+def _amortised(options, experiment, method, num_particles, **model):
+    """``(methods, extra_updates)`` for a cell of ``method``: an amortised OT filter gets the map
+    stored in the run directory (trained there by the first cell that needs it, reused by later
+    cells, resumed runs and later runs into the same directory)."""
+    if method not in AMORTISED_METHODS:
+        return (method,), None
+    from ot_filter.experiments.amortised import amortised_updates, map_for, map_name
+
+    directory = os.path.join(options["maps"] or os.path.join(options["run_dir"], "maps"), map_name(experiment, **model))
+    # Offline trajectories as long as the run's, with its particle count.
+    trained, _ = map_for(directory, cell_key(options["seed"], 999_983), experiment, num_particles=num_particles,
+                         num_steps=options["steps"], num_iterations=options["map_iterations"], **model)
+    return (), {method: amortised_updates(trained, experiment)[method]}
+
+
 def _dynamic_cell(options, cell, progress):
     from ot_filter.experiments.dynamic_example import run_dynamic_example
 
     bandwidth, standardise = DYNAMIC_KERNELS[options["experiment"]]
     key = cell_key(options["seed"], cell["dim"], cell["block"])
+    methods, extra = _amortised(options, "dynamic", cell["method"], cell["particles"], dim=cell["dim"])
     result = run_dynamic_example(
         key, dim=cell["dim"], num_particles=cell["particles"], num_steps=options["steps"], progress=progress,
-        num_simulations=cell["simulations"], methods=(cell["method"],), bandwidth=bandwidth,
-        standardise=standardise, average_from=min(1.0, 0.1 * options["steps"]), keep=1,
+        num_simulations=cell["simulations"], methods=methods, bandwidth=bandwidth,
+        standardise=standardise, average_from=min(1.0, 0.1 * options["steps"]), keep=1, extra_updates=extra,
     )
     method = cell["method"]
     summary, arrays = result["metrics"][method], result["arrays"]
@@ -254,9 +274,10 @@ def _lorenz63_cell(options, cell, progress):
     from ot_filter.experiments.lorenz63 import SETTLE_TIME, run_lorenz63
 
     key = cell_key(options["seed"], cell["block"])
+    methods, extra = _amortised(options, "lorenz63", cell["method"], cell["particles"], observed=(0, 2))
     result = run_lorenz63(key, num_particles=cell["particles"], num_steps=options["steps"],
-                          num_simulations=cell["simulations"], methods=(cell["method"],), save_every=5,
-                          progress=progress)
+                          num_simulations=cell["simulations"], methods=methods, save_every=5,
+                          progress=progress, extra_updates=extra)
     method = cell["method"]
     summary, arrays = result["metrics"][method], result["arrays"]
     mse = arrays[f"{method}_mse"]  # [S, T]
@@ -407,6 +428,9 @@ def _continuous_plot(options, groups, out):
 
 
 _COMMON = {"seed": 0, "block": 5}
+# The amortised OT methods: where their maps live (None: the run directory's maps/) and the
+# offline iterations of a map not stored yet (experiments/amortised.py's default).
+_MAPS = {"maps": None, "map_iterations": 21_000}
 
 EXPERIMENTS = {
     e.name: e
@@ -421,9 +445,9 @@ EXPERIMENTS = {
         Experiment(
             "dynamic", "the chapter's dynamic example: MMD to the exact posterior over time",
             dict(_COMMON, particles=(1000,), dim=(2,), steps=50, simulations=20,
-                 methods=("enkf", "sir", "ot", "local_ot")),
-            dict(particles=(200,), steps=15, simulations=2, block=2),
-            (), ("enkf", "letkf", "sir", "ot", "local_ot"), _dynamic_cell, _dynamic_plot,
+                 methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
+            dict(particles=(200,), steps=15, simulations=2, block=2, map_iterations=3000),
+            (), ("enkf", "letkf", "sir", "ot", "local_ot") + AMORTISED_METHODS, _dynamic_cell, _dynamic_plot,
         ),
         Experiment(
             "dynamic-dims", "the dynamic example's MMD vs state dimension (sweep)",
@@ -443,9 +467,11 @@ EXPERIMENTS = {
             "lorenz63", "the chapter's Lorenz-63 experiment (x1, x3 observed): MSE over time",
             # one block of 10: the simulations shard over the CPU cores (5 + 5) in one program
             dict(_COMMON, particles=(1000,), steps=500, simulations=10, block=10,
-                 methods=("enkf", "sir", "ot", "ot_enkf")),
-            dict(particles=(200,), steps=250, simulations=2, block=2, methods=("enkf", "sir", "ot")),
-            (), ("enkf", "sir", "ot", "ot_enkf"), _lorenz63_cell, _lorenz63_plot, minimum_steps=151,
+                 methods=("enkf", "sir", "ot", "ot_enkf"), **_MAPS),
+            dict(particles=(200,), steps=250, simulations=2, block=2, methods=("enkf", "sir", "ot"),
+                 map_iterations=3000),
+            (), ("enkf", "sir", "ot", "ot_enkf") + AMORTISED_METHODS, _lorenz63_cell, _lorenz63_plot,
+            minimum_steps=151,
         ),
         Experiment(
             "lorenz96", "Lorenz-96 twin experiment (DAPPER's sakov2008 setting): analysis RMSE",

@@ -29,7 +29,7 @@ class RunInterrupted(Exception):
     """The run stopped between cells on request (e.g. Ctrl-C); rerunning resumes it."""
 
 SINGLE_VALUED = ("seed", "steps", "simulations", "block", "dt")
-POSITIVE_INTS = ("particles", "dim", "steps", "simulations", "block")
+POSITIVE_INTS = ("particles", "dim", "steps", "simulations", "block", "map_iterations")
 
 
 class RunOutput(NamedTuple):
@@ -76,6 +76,8 @@ def resolve_options(name: str, overrides: dict | None = None, quick: bool = Fals
         raise RunError(f"--seed must be an integer >= 0, got {options.get('seed')!r}")
     if "noise" in options and not all(isinstance(v, (int, float)) and v > 0 for v in options["noise"]):
         raise RunError(f"--noise values must be > 0, got {options['noise']}")
+    if options.get("maps") is not None and not isinstance(options["maps"], str):
+        raise RunError(f"--maps must be a directory, got {options['maps']!r}")
     if "dt" in options and not (isinstance(options["dt"], (int, float)) and options["dt"] > 0):
         raise RunError(f"--dt must be > 0, got {options['dt']!r}")
     for key in ("particles", "dim", "noise"):
@@ -203,7 +205,9 @@ def run_experiment(
             bar.set_postfix_str(cell_id(cell))
             started = time.perf_counter()
             with progress_listener(lambda done, total: bar.set_postfix_str(f"{cell_id(cell)} step {done}/{total}")):
-                result = experiment.run_cell(options, cell, step_every)
+                # The run directory rides along (not in the stored options): cells that train
+                # something once per run (an amortised OT map) keep it there for later cells and runs.
+                result = experiment.run_cell(dict(options, run_dir=out), cell, step_every)
             record = {
                 "cell": cell,
                 "per_simulation": {k: [float(x) for x in v] for k, v in result.per_simulation.items()},

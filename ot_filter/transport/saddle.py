@@ -31,6 +31,7 @@ import optax
 from ot_filter.lib.ensemble import masked_mean_and_anomalies, mean_and_anomalies
 from ot_filter.lib.gaussian import cholesky_gain
 from ot_filter.lib.linalg import symmetrise
+from ot_filter.transport.context import conditioning
 
 Array = jax.Array
 
@@ -39,7 +40,9 @@ __all__ = [
     "SaddleParams",
     "TrainingState",
     "TrainingTrace",
+    "batch_gain",
     "enkf_gain",
+    "evaluate_saddle",
     "saddle_objective",
     "train_saddle",
 ]
@@ -76,6 +79,8 @@ class Batch(NamedTuple):
     ybar: Array  # [B, m]  the observations simulated from Xbar^j (used by the EnKF layer only)
     gain: Array | None = None  # [B, n, m] per-pair EnKF-layer gains (the localised update);
     #                            None: the layer, if on, estimates one gain from the batch
+    context: Array | None = None  # [B, c] what each pair's prior is (``transport/context.py``),
+    #                               appended to y wherever a network reads it; None: nothing
 
 
 def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
@@ -114,7 +119,7 @@ def transport_cost(transport: Callable, batch: Batch, gain, cost_from_layer: boo
     when the layer is already right. (Measured from xbar, T cannot see the observation noise the
     layer added, and the cheapest map shrinks it away: the ensemble collapses unless f holds it.)"""
     inputs = transport_input(batch.xbar, batch.y, batch.ybar, gain)
-    moved = transport(inputs, batch.y)
+    moved = transport(inputs, conditioning(batch.y, batch.context))
     origin = inputs if cost_from_layer else batch.xbar
     return moved, 0.5 * jnp.sum((moved - origin) ** 2, axis=-1)
 
@@ -123,7 +128,27 @@ def saddle_objective(potential: Callable, transport: Callable, batch: Batch, gai
                      cost_from_layer: bool = False) -> Array:
     """J(f, T) on a mini-batch; ``potential(x, y) -> [B]``, ``transport(x, y) -> [B, n]``."""
     moved, cost = transport_cost(transport, batch, gain, cost_from_layer)
-    return jnp.mean(potential(batch.x, batch.y)) + jnp.mean(cost - potential(moved, batch.y))
+    y = conditioning(batch.y, batch.context)
+    return jnp.mean(potential(batch.x, y)) + jnp.mean(cost - potential(moved, y))
+
+
+def batch_gain(batch: Batch, enkf_layer: bool) -> Array | None:
+    """The EnKF layer's gain for a mini-batch: the batch's own per-pair gains, else one estimated
+    from its pairs (None without the layer)."""
+    if batch.gain is None and enkf_layer:
+        return enkf_gain(batch.x, batch.y)
+    return batch.gain
+
+
+def evaluate_saddle(key: Array, params: SaddleParams, sample_batch: Callable[[Array], Batch], *,
+                    potential_net, transport_net, enkf_layer: bool, cost_from_layer: bool = False) -> Array:
+    """J(f, T) of fixed parameters on one mini-batch (a validation loss: no step taken)."""
+    batch = sample_batch(key)
+    return saddle_objective(
+        lambda x, y: potential_net.apply(params.potential, x, y),
+        lambda x, y: transport_net.apply(params.transport, x, y),
+        batch, batch_gain(batch, enkf_layer), cost_from_layer,
+    )
 
 
 def train_saddle(
@@ -157,7 +182,7 @@ def train_saddle(
 
     def transport_loss(transport_params, potential_params, batch, gain):
         moved, cost = transport_cost(transport(transport_params), batch, gain, cost_from_layer)
-        return jnp.mean(cost - potential(potential_params)(moved, batch.y))
+        return jnp.mean(cost - potential(potential_params)(moved, conditioning(batch.y, batch.context)))
 
     def objective(potential_params, transport_params, batch, gain):
         return saddle_objective(potential(potential_params), transport(transport_params), batch, gain,
@@ -166,9 +191,7 @@ def train_saddle(
     def outer(iteration, carry):
         state, loss, smoothed, finite = carry
         batch = sample_batch(jax.random.fold_in(key, iteration))
-        gain = batch.gain
-        if gain is None and enkf_layer:
-            gain = enkf_gain(batch.x, batch.y)
+        gain = batch_gain(batch, enkf_layer)
         params = state.params
 
         def inner(_, inner_carry):
@@ -189,7 +212,8 @@ def train_saddle(
         state = TrainingState(
             SaddleParams(potential_params, transport_params), potential_opt_state, transport_opt_state
         )
-        loss = loss.at[iteration].set(value, mode="drop")
+        if record_length:  # 0: nothing recorded (a budget of 0, an offline map used as is)
+            loss = loss.at[iteration].set(value, mode="drop")
         smoothed = jnp.where(
             iteration == 0, value, LOSS_SMOOTHING * smoothed + (1 - LOSS_SMOOTHING) * value
         )

@@ -56,6 +56,7 @@ from ot_filter.lib.validation import check_int, check_number, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
 from ot_filter.model import StateSpaceModel
 from ot_filter.transport.batches import TrainingData, sample_batch
+from ot_filter.transport.context import ContextScaling, conditioning, context_features, context_size
 from ot_filter.transport.diagnostics import c_concavity_min_eigenvalue
 from ot_filter.transport.divergence import diverged as divergence_test
 from ot_filter.transport.divergence import innovation_trend, lost_track
@@ -65,6 +66,7 @@ from ot_filter.transport.saddle import (
     SaddleParams,
     TrainingState,
     enkf_gain,
+    evaluate_saddle,
     train_saddle,
     transport_input,
 )
@@ -105,6 +107,9 @@ class OTSettings(NamedTuple):
     prior_smoothing: Array  # c in the smoothing bandwidth
     trend_threshold: Array  # the moving average of the normalised innovation above this: lost track
     inflation: Array  # multiplicative inflation (>= 1) of the prior anomalies before the update
+    anchor: SaddleParams | None = None  # an offline-trained map every update starts from
+    #                                     (``amortised_ot``); None: warm start / random init
+    context_scaling: ContextScaling | None = None  # normalises the prior's context features
 
 
 class OTStructure(NamedTuple):
@@ -124,6 +129,10 @@ class OTStructure(NamedTuple):
     fresh_observations: bool
     potential_optimizer: optax.GradientTransformation | None  # None: AdamW from the settings
     transport_optimizer: optax.GradientTransformation | None  # None: Adam from the settings
+    anchored: bool = False  # every update starts from ``settings.anchor`` (and resets to it)
+    restart: bool = True  # anchored: every update starts from the anchor (else only the first
+    #                       and after a divergence; later ones are warm-started as ``ot()``'s)
+    contextual: bool = False  # the networks also read the prior's context (``transport/context.py``)
 
 
 class OTState(NamedTuple):
@@ -135,6 +144,7 @@ class OTState(NamedTuple):
     num_updates: Array  # int scalar: updates since the networks were (re-)initialised
     diverged: Array  # bool: the last training diverged; the networks were re-initialised
     innovation_trend: Array  # moving average of the normalised innovation (1: tracking)
+    context: Array | None = None  # [c] the last prior's normalised context (contextual maps)
 
 
 class OTInfo(NamedTuple):
@@ -335,12 +345,25 @@ def init_training(settings: OTSettings, structure: OTStructure, key: Array, n: i
     potential_net, transport_net = networks(structure)
     potential_optimizer, transport_optimizer = optimizers(settings, structure)
     potential_key, transport_key = jax.random.split(key)
-    x, y = jnp.zeros((1, n), dtype), jnp.zeros((1, m), dtype)
+    conditioning_size = m + (context_size(n, m) if structure.contextual else 0)
+    x, y = jnp.zeros((1, n), dtype), jnp.zeros((1, conditioning_size), dtype)
     params = SaddleParams(potential_net.init(potential_key, x, y), transport_net.init(transport_key, x, y))
     params = jax.tree.map(lambda leaf: leaf.astype(dtype), params)  # float64 data: float64 nets
     return TrainingState(
         params, potential_optimizer.init(params.potential), transport_optimizer.init(params.transport)
     )
+
+
+def starting_training(settings: OTSettings, structure: OTStructure, key: Array, n: int, m: int,
+                      dtype) -> TrainingState:
+    """Where a training starts afresh: the offline-trained map (``structure.anchored``) with
+    fresh optimiser states, else random parameters."""
+    if not structure.anchored:
+        return init_training(settings, structure, key, n, m, dtype)
+    params = jax.tree.map(lambda leaf: jnp.asarray(leaf, dtype), settings.anchor)
+    potential_optimizer, transport_optimizer = optimizers(settings, structure)
+    return TrainingState(params, potential_optimizer.init(params.potential),
+                         transport_optimizer.init(params.transport))
 
 
 def iteration_budget(num_updates: Array, first: int, floor: int) -> Array:
@@ -363,13 +386,14 @@ def ot_init(settings: OTSettings, key: Array, particles: Array, model: StateSpac
     dtype = particles.dtype
     return OTState(
         log_weights=uniform_log_weights(particles),
-        training=init_training(settings, structure, key, n, m, dtype),
+        training=starting_training(settings, structure, key, n, m, dtype),
         standardisation=identity_standardisation(n, m, dtype),
         gain=jnp.zeros((n, m), dtype),
         simulated_observations=jnp.zeros((num, m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
         innovation_trend=jnp.ones((), dtype),
+        context=jnp.zeros(settings.context_scaling.mean.shape, dtype) if structure.contextual else None,
     )
 
 
@@ -432,8 +456,8 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
     budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
                                                  structure.floor_iterations))
     training = state.training
-    if not structure.warm_start:
-        training = init_training(settings, structure, reset_key, *sizes, prior.xs.dtype)
+    if (structure.anchored and structure.restart) or not structure.warm_start:
+        training = starting_training(settings, structure, reset_key, *sizes, prior.xs.dtype)
     potential_net, transport_net = networks(structure)
     potential_optimizer, transport_optimizer = optimizers(settings, structure)
     training, trace = train_saddle(
@@ -443,6 +467,13 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
         inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
         record_length=structure.first_iterations, cost_from_layer=cost_from_layer,
     )
+    if structure.first_iterations == 0:
+        # An offline map used as is: its J on one fresh mini-batch of this prior stands in for
+        # the (empty) trace, so that the loss test of the divergence check still sees the map.
+        value = evaluate_saddle(jax.random.fold_in(train_key, 1), training.params, sample_batch,
+                                potential_net=potential_net, transport_net=transport_net,
+                                enkf_layer=structure.enkf_layer, cost_from_layer=cost_from_layer)
+        trace = trace._replace(smoothed_loss=value, finite=trace.finite & jnp.isfinite(value))
     return training, trace, trend, lost
 
 
@@ -460,6 +491,8 @@ def _apply(settings, key, state, particles, observation, model, structure):
     def sample_observation(key, x):
         return jnp.where(observed, model.sample_observation(key, x), scaling.y_mean)
 
+    context = prior_context(settings, structure, scaling, xs, active)
+
     data = TrainingData(
         xs, ys,
         active_index=jnp.argsort(~active, stable=True),  # mini-batches draw indices below num_active
@@ -476,7 +509,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
             batch_key, data, sample_observation, batch_size=structure.batch_size,
             smoothing=structure.smoothing, fresh_observations=structure.fresh_observations,
             enkf_layer=structure.enkf_layer,
-        ),
+        )._replace(context=context),
         (n, ys.shape[1]),
     )
     params = training.params
@@ -484,14 +517,14 @@ def _apply(settings, key, state, particles, observation, model, structure):
     # 3. Transport the particles to the actual observation.
     gain = enkf_gain(xs, ys, active) if structure.enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
-    moved = _transport_standardised(structure, params.transport, xs, y_standard, ys, gain)
+    moved = _transport_standardised(structure, params.transport, xs, y_standard, ys, gain, context)
 
     # 4. Checks: divergence (loss, spread, posterior predictive) and c-concavity.
     z = predictive_check(jax.random.fold_in(key, 4), model.sample_observation,
                          scaling.restore_x(moved), observation, active)
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
                                       moved, active, z, xs)
-    min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data)
+    min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data, context)
 
     # 5. Fall back to the EnKF where training diverged, and restart the networks there.
     enkf_particles, _, _ = enkf_apply(
@@ -502,10 +535,10 @@ def _apply(settings, key, state, particles, observation, model, structure):
     # An observation with nothing finite carries no information: the particles stay
     # (run_filter skips such steps before getting here).
     posterior = jnp.where(jnp.any(observed), posterior, particles)
-    fresh = init_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
+    fresh = starting_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
     training = use_where(diverged, fresh, training)
 
-    potential_values = potential_net.apply(params.potential, xs, ys)
+    potential_values = potential_net.apply(params.potential, xs, conditioning(ys, context))
     state = OTState(
         log_weights=state.log_weights,
         training=training,
@@ -515,6 +548,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
         num_updates=jnp.where(diverged, 0, state.num_updates + 1),  # fresh networks: full budget
         diverged=diverged,
         innovation_trend=trend,
+        context=context,
     )
     info = OTInfo(
         loss=trace.loss,
@@ -529,7 +563,16 @@ def _apply(settings, key, state, particles, observation, model, structure):
     return posterior, state, info
 
 
-def _concavity_check(settings, structure, potential_params, xs, ys, data):
+def prior_context(settings: OTSettings, structure: OTStructure, scaling: Standardisation, xs: Array,
+                  active: Array) -> Array | None:
+    """The prior's normalised context features (``transport/context.py``); None unless the
+    networks read them."""
+    if not structure.contextual:
+        return None
+    return settings.context_scaling.normalise(context_features(scaling, xs, active))
+
+
+def _concavity_check(settings, structure, potential_params, xs, ys, data, context=None):
     """(smallest Hessian eigenvalue, fraction of violations) at the first checked active pairs."""
     if not structure.concavity_points:  # min over no points
         return jnp.array(jnp.inf, xs.dtype), jnp.zeros((), xs.dtype)
@@ -537,7 +580,7 @@ def _concavity_check(settings, structure, potential_params, xs, ys, data):
     checked = min(structure.concavity_points, xs.shape[0])
     points = data.active_index[:checked]
     eigenvalues = c_concavity_min_eigenvalue(
-        lambda x, y: potential_net.apply(potential_params, x, y),
+        lambda x, y: potential_net.apply(potential_params, x, conditioning(y, context)),
         xs[points], ys[points], settings.concavity_step,
     )
     counted = jnp.arange(checked) < data.num_active
@@ -546,11 +589,11 @@ def _concavity_check(settings, structure, potential_params, xs, ys, data):
     return min_eigenvalue, violation
 
 
-def _transport_standardised(structure, transport_params, xs, y_standard, ys, gain):
+def _transport_standardised(structure, transport_params, xs, y_standard, ys, gain, context=None):
     _, transport_net = networks(structure)
     y_rows = jnp.broadcast_to(y_standard, ys.shape)
     inputs = transport_input(xs, y_rows, ys, gain if structure.enkf_layer else None)
-    return transport_net.apply(transport_params, inputs, y_rows)
+    return transport_net.apply(transport_params, inputs, conditioning(y_rows, context))
 
 
 def ot_transport(state: OTState, particles: Array, observation: Array, simulated: Array | None = None,
@@ -581,7 +624,8 @@ def _transport(state, particles, observation, simulated, structure):
     y_standard = scaling.standardise_y(observation)
 
     def move(y_rows):
-        moved = _transport_standardised(structure, state.training.params.transport, xs, y_rows, ys, state.gain)
+        moved = _transport_standardised(structure, state.training.params.transport, xs, y_rows, ys, state.gain,
+                                        state.context)
         return scaling.restore_x(moved)
 
     if observation.ndim == 1 or observation.shape[0] == particles.shape[0]:
@@ -592,7 +636,8 @@ def _transport(state, particles, observation, simulated, structure):
 def ot_potential(state: OTState, x: Array, y: Array, *, structure: OTStructure) -> Array:
     scaling = state.standardisation
     potential_net, _ = networks(structure)
-    return potential_net.apply(state.training.params.potential, scaling.standardise_x(x), scaling.standardise_y(y))
+    return potential_net.apply(state.training.params.potential, scaling.standardise_x(x),
+                               conditioning(scaling.standardise_y(y), state.context))
 
 
 def finite_or_inf(value: Array) -> Array:

@@ -1,0 +1,33 @@
+"""Amortised OT filtering: a conditional map trained offline on the forecast ensembles of long
+simulated trajectories (``training``, ``bank``), saved and loaded with its record (``storage``),
+and filtered with by ``ot_filter.amortised_ot`` (no training online, or a few warm-started
+iterations per step)."""
+
+from ot_filter.amortised.bank import ForecastBank, bank_batch, forecast_bank, split_bank
+from ot_filter.amortised.storage import MapMismatchError, load_map, save_map
+from ot_filter.amortised.training import (
+    AmortisedMap,
+    MapConfig,
+    TrainingHistory,
+    collect_forecasts,
+    map_recipe,
+    train_amortised,
+    train_map,
+)
+
+__all__ = [
+    "AmortisedMap",
+    "ForecastBank",
+    "MapConfig",
+    "MapMismatchError",
+    "TrainingHistory",
+    "bank_batch",
+    "collect_forecasts",
+    "forecast_bank",
+    "load_map",
+    "map_recipe",
+    "save_map",
+    "split_bank",
+    "train_amortised",
+    "train_map",
+]

@@ -1,0 +1,113 @@
+"""Saving and loading an amortised OT map: flax's msgpack serialisation of the parameters and a
+JSON record of what the map is and how it was trained.
+
+A map is a directory holding ``params.msgpack`` (``flax.serialization.to_bytes``: the arrays'
+bytes exactly, so a reloaded map is bit-identical) and ``map.json`` (the ``MapConfig``, the
+training info, the versions of ot_filter / jax / flax it was written with, and the parameters'
+SHA-256). ``load_map(path, model=..., state_dim=..., observation_dim=...)`` refuses a map
+trained for another model or other dimensions, and a parameter file that does not match its
+record.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from importlib import metadata
+from pathlib import Path
+
+import flax
+import jax
+import jax.numpy as jnp
+from flax import serialization
+
+from ot_filter.amortised.training import AmortisedMap, MapConfig, map_recipe
+from ot_filter.transport.context import ContextScaling
+from ot_filter.updates.ot import init_training
+
+__all__ = ["MapMismatchError", "load_map", "save_map"]
+
+PARAMS_FILE = "params.msgpack"
+RECORD_FILE = "map.json"
+FORMAT = 1
+
+
+class MapMismatchError(ValueError):
+    """A stored map was trained for another model, other dimensions, or its files disagree."""
+
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def save_map(path: str | os.PathLike, trained_map: AmortisedMap) -> Path:
+    """Writes the map to the directory ``path`` (created; files replaced atomically)."""
+    directory = Path(path)
+    directory.mkdir(parents=True, exist_ok=True)
+    payload = serialization.to_bytes(jax.device_get(_stored(trained_map)))
+    record = {
+        "format": FORMAT,
+        "config": trained_map.config._asdict(),
+        "info": trained_map.info,
+        "dtype": str(jax.tree.leaves(trained_map.params)[0].dtype),
+        "sha256": hashlib.sha256(payload).hexdigest(),
+        "versions": {"ot_filter": _version("ot_filter"), "jax": jax.__version__, "flax": flax.__version__},
+    }
+    _write_atomic(directory / PARAMS_FILE, payload)
+    _write_atomic(directory / RECORD_FILE, json.dumps(record, indent=2, default=float).encode())
+    return directory
+
+
+def load_map(path: str | os.PathLike, *, model: str | None = None, state_dim: int | None = None,
+             observation_dim: int | None = None) -> AmortisedMap:
+    """Reads a map written by ``save_map``; each of ``model``, ``state_dim``, ``observation_dim``
+    that is given must be what the map was trained for (else ``MapMismatchError``)."""
+    directory = Path(path)
+    try:
+        record = json.loads((directory / RECORD_FILE).read_text())
+        payload = (directory / PARAMS_FILE).read_bytes()
+    except FileNotFoundError as error:
+        raise FileNotFoundError(f"no amortised map at {directory} ({error.filename} missing)") from None
+    if record.get("format") != FORMAT:
+        raise MapMismatchError(f"{directory}: map format {record.get('format')!r}, this version reads {FORMAT}")
+    config = MapConfig(**record["config"])
+    asked = {"model": model, "state_dim": state_dim, "observation_dim": observation_dim}
+    wrong = {name: value for name, value in asked.items()
+             if value is not None and value != getattr(config, name)}
+    if wrong:
+        raise MapMismatchError(
+            f"the map at {directory} was trained for model {config.model!r} (state dimension "
+            f"{config.state_dim}, observation dimension {config.observation_dim}); asked for "
+            + ", ".join(f"{name} {value!r}" for name, value in wrong.items())
+        )
+    if hashlib.sha256(payload).hexdigest() != record["sha256"]:
+        raise MapMismatchError(f"{directory}: {PARAMS_FILE} does not match the SHA-256 in {RECORD_FILE}")
+    settings, structure = map_recipe(config)
+    dtype = jnp.dtype(record["dtype"])
+    template = AmortisedMap(
+        init_training(settings, structure, jax.random.key(0), config.state_dim, config.observation_dim, dtype).params,
+        None if settings.context_scaling is None else jax.tree.map(lambda a: a.astype(dtype), settings.context_scaling),
+        config, {},
+    )
+    stored = serialization.from_bytes(_stored(template), payload)
+    return AmortisedMap(jax.tree.map(jnp.asarray, stored["params"]),
+                        None if stored["context_scaling"] is None else ContextScaling(
+                            *(jnp.asarray(stored["context_scaling"][k]) for k in ("mean", "scale"))),
+                        config, record["info"])
+
+
+def _stored(trained_map: AmortisedMap) -> dict:
+    """The arrays of a map, as serialised."""
+    scaling = trained_map.context_scaling
+    return {"params": trained_map.params,
+            "context_scaling": None if scaling is None else {"mean": scaling.mean, "scale": scaling.scale}}
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_bytes(data)
+    os.replace(temporary, path)

@@ -1,0 +1,287 @@
+"""Amortised OT filtering: the forecast bank, offline training, the update, saving and loading.
+
+The tests on the map trained for the Kalman comparison (``trained``: 12,000 offline iterations,
+about a minute) are ``long``; the bank, batch and context tests are quick."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ot_filter as otf
+from ot_filter.amortised import (
+    AmortisedMap,
+    ForecastBank,
+    MapMismatchError,
+    bank_batch,
+    forecast_bank,
+    load_map,
+    save_map,
+    split_bank,
+    train_amortised,
+)
+from ot_filter.progress import progress_listener
+from ot_filter.transport.saddle import enkf_gain
+from ot_filter.transport.standardisation import Standardisation
+
+# A stationary 1-D linear-Gaussian model: the Kalman filter is the exact reference.
+A, Q, R = 0.9, 0.3, 0.5
+
+
+def scalar_model():
+    return otf.models.linear_gaussian([[A]], [[Q]], [[1.0]], [[R]], [0.0], [[1.0]])
+
+
+@pytest.fixture(scope="module")
+def trained():
+    """A map trained offline on the scalar model (2 rounds: EnKF forecasts, then its own), without
+    the context inputs (a stationary linear-Gaussian filter meets one prior shape; the context
+    is then noise the map must learn to ignore, which takes longer: 0.10 instead of 0.05 for the
+    error below after 12,000 iterations)."""
+    reports = []
+    with progress_listener(lambda done, total: reports.append((done, total))):
+        trained_map, histories = train_amortised(
+            jax.random.key(0), scalar_model(), model_name="scalar-lg", num_simulations=20, num_steps=30,
+            num_particles=200, burn_in=5, rounds=2, num_iterations=12_000, chunks=3, width=32, batch_size=64,
+            ensembles_per_batch=4, context=False,
+        )
+    return trained_map, histories, reports
+
+
+@pytest.fixture(scope="module")
+def contextual():
+    """A briefly trained map with the context inputs (for saving, loading and reuse)."""
+    trained_map, _ = train_amortised(
+        jax.random.key(1), scalar_model(), model_name="scalar-lg", num_simulations=6, num_steps=10,
+        num_particles=100, rounds=1, num_iterations=200, chunks=2, width=8, batch_size=32, ensembles_per_batch=4,
+    )
+    return trained_map
+
+
+def test_forecast_bank_standardises_each_ensemble_and_holds_its_gain():
+    model = scalar_model()
+    analyses = jax.random.normal(jax.random.key(1), (3, 4, 100, 1)) * jnp.arange(1.0, 4.0)[:, None, None, None]
+    bank = forecast_bank(jax.random.key(2), model, analyses)
+    assert bank.particles.shape == (12, 100, 1) and bank.gain.shape == (12, 1, 1)
+    standard = jax.vmap(lambda s, x: s.standardise_x(x))(bank.scaling, bank.particles)
+    np.testing.assert_allclose(standard.mean(axis=1), 0.0, atol=1e-5)
+    np.testing.assert_allclose(standard.std(axis=1), 1.0, rtol=1e-4)
+    # Spread grows with the analyses' (propagated with A = 0.9 and noise Q).
+    spread = np.asarray(bank.scaling.x_scale[:, 0]).reshape(3, 4).mean(axis=1)
+    assert spread[0] < spread[1] < spread[2]
+    assert np.all(np.isfinite(np.asarray(bank.gain))) and np.all(np.asarray(bank.gain) > 0)
+
+
+def test_a_mini_batch_draws_pairs_and_copies_from_one_ensemble():
+    # Ensemble e holds the values 100 e + [0, 1): any pair or copy from another ensemble shows.
+    count, num = 6, 50
+    particles = (100.0 * jnp.arange(count)[:, None, None]
+                 + jax.random.uniform(jax.random.key(3), (count, num, 1)))
+    scaling = Standardisation(jnp.zeros((count, 1)), jnp.ones((count, 1)), jnp.zeros((count, 1)), jnp.ones((count, 1)))
+    bank = ForecastBank(particles, scaling, jnp.arange(count, dtype=jnp.float32)[:, None, None],
+                        jnp.zeros((count, 5)))
+    batch = bank_batch(jax.random.key(4), bank, lambda key, x: x, batch_size=24, ensembles_per_batch=3,
+                       enkf_layer=True)
+    x, xbar = np.asarray(batch.x[:, 0]).reshape(3, 8), np.asarray(batch.xbar[:, 0]).reshape(3, 8)
+    ensemble = np.floor(x / 100)
+    assert np.all(ensemble == ensemble[:, :1]) and np.all(np.floor(xbar / 100) == ensemble)
+    # Each pair carries its own ensemble's gain; observations are simulated at the pair (here y = x).
+    np.testing.assert_array_equal(np.asarray(batch.gain[:, 0, 0]).reshape(3, 8), ensemble)
+    np.testing.assert_array_equal(batch.y, batch.x)
+    # Not always the same ensemble: the 3 sub-batches of a few draws cover several ensembles.
+    seen = {int(np.floor(bank_batch(jax.random.key(k), bank, lambda key, x: x, batch_size=24, ensembles_per_batch=3,
+                                    enkf_layer=False).x[0, 0] / 100)) for k in range(10)}
+    assert len(seen) >= 3
+
+
+def test_split_bank_holds_out_the_last_ensembles():
+    bank = ForecastBank(jnp.arange(10.0)[:, None, None] * jnp.ones((10, 4, 1)),
+                        Standardisation(*(jnp.zeros((10, 1)),) * 4), jnp.zeros((10, 1, 1)), jnp.zeros((10, 5)))
+    training, validation = split_bank(bank, 0.2)
+    assert training.num_ensembles == 8 and validation.num_ensembles == 2
+    np.testing.assert_array_equal(validation.particles[:, 0, 0], [8.0, 9.0])
+    with pytest.raises(ValueError, match="validation_fraction"):
+        split_bank(bank, 1.0)
+
+
+@pytest.mark.long
+def test_offline_training_reports_progress_and_a_finite_validation_curve(trained):
+    trained_map, histories, reports = trained
+    assert len(histories) == 2 and reports == [(1, 3), (2, 3), (3, 3)] * 2
+    for history in histories:
+        assert history.iterations.tolist() == [2000, 4000, 6000]
+        assert np.all(np.isfinite(history.validation_loss)) and np.all(np.isfinite(history.training_loss))
+    assert trained_map.info["rounds"] == 2 and trained_map.info["iterations"] == 12_000
+    assert trained_map.config.state_dim == 1 and trained_map.config.observation_dim == 1
+
+
+def _kalman_and_filters(update, num_particles=200, steps=40):
+    model = scalar_model()
+    _, observations = otf.simulate(jax.random.key(7), model, steps)
+    exact = otf.kalman_filter(model, observations)
+    result = otf.run_filter(jax.random.key(8), model, update, observations, num_particles)
+    return exact, result
+
+
+@pytest.mark.long
+def test_the_amortised_filter_matches_the_kalman_filter_without_training_online(trained):
+    # The posterior mean's Monte-Carlo error at N = 200 is sqrt(P_a / N) ~ 0.036 (P_a ~ 0.26);
+    # the prior mean is off by K |y - x_f| ~ 0.5: a map that does not condition fails by far.
+    trained_map, _, _ = trained
+    exact, result = _kalman_and_filters(otf.amortised_ot(trained_map))
+    monte_carlo = float(np.sqrt(np.mean(exact.cov[5:, 0, 0]) / 200))
+    error = np.sqrt(np.mean((np.asarray(result.mean[5:, 0]) - np.asarray(exact.mean[5:, 0])) ** 2))
+    assert error < 3 * monte_carlo, (error, monte_carlo)
+    variance_ratio = np.mean(np.asarray(result.spread[5:]) ** 2) / np.mean(np.asarray(exact.cov[5:, 0, 0]))
+    assert 0.75 < variance_ratio < 1.33, variance_ratio
+    assert not np.any(np.asarray(result.info.diverged))
+    assert np.all(np.isinf(np.asarray(result.info.loss))) or result.info.loss.shape[-1] == 0
+    assert np.all(np.isfinite(np.asarray(result.info.final_loss)))
+
+
+@pytest.mark.long
+def test_an_unconditioned_map_fails_the_same_check(trained):
+    # The control of the test above: the untrained anchor (a random map) with no online training.
+    trained_map, _, _ = trained
+    untrained = trained_map._replace(params=jax.tree.map(jnp.zeros_like, trained_map.params))
+    exact, result = _kalman_and_filters(otf.amortised_ot(untrained))
+    monte_carlo = float(np.sqrt(np.mean(exact.cov[5:, 0, 0]) / 200))
+    error = np.sqrt(np.mean((np.asarray(result.mean[5:, 0]) - np.asarray(exact.mean[5:, 0])) ** 2))
+    assert error > 3 * monte_carlo
+
+
+@pytest.mark.long
+def test_restarted_steps_start_from_the_offline_map_every_time(trained):
+    trained_map, _, _ = trained
+    model = scalar_model()
+    update = otf.amortised_ot(trained_map, num_iterations=20, restart=True)
+    particles = jax.random.normal(jax.random.key(9), (200, 1))
+    state = update.init(jax.random.key(10), particles, model)
+    first, after, info = update.apply(jax.random.key(11), state, particles, jnp.array([0.7]), model)
+    assert info.loss.shape == (20,) and np.all(np.isfinite(np.asarray(info.loss)))
+    moved = jax.tree.map(lambda a, b: bool(jnp.any(a != b)), after.training.params, trained_map.params)
+    assert any(jax.tree.leaves(moved))  # the step fine-tuned the map ...
+    again, _, _ = update.apply(jax.random.key(11), after, particles, jnp.array([0.7]), model)
+    np.testing.assert_array_equal(again, first)  # ... but the next step starts from the offline one
+
+
+@pytest.mark.long
+def test_warm_started_steps_continue_from_the_step_before_with_a_halving_budget(trained):
+    trained_map, _, _ = trained
+    model = scalar_model()
+    update = otf.amortised_ot(trained_map, num_iterations=(16, 4))
+    particles = jax.random.normal(jax.random.key(9), (200, 1))
+    state = update.init(jax.random.key(10), particles, model)
+    for got, want in zip(jax.tree.leaves(state.training.params), jax.tree.leaves(trained_map.params)):
+        np.testing.assert_array_equal(got, want)  # the first step starts from the offline map
+    first, after, info = update.apply(jax.random.key(11), state, particles, jnp.array([0.7]), model)
+    assert np.all(np.isfinite(np.asarray(info.loss)))  # 16 iterations, all recorded
+    again, later, info = update.apply(jax.random.key(11), after, particles, jnp.array([0.7]), model)
+    assert int(np.sum(np.isfinite(np.asarray(info.loss)))) == 8  # halved
+    assert not np.array_equal(np.asarray(again), np.asarray(first))  # from the fine-tuned map
+    with pytest.raises(ValueError, match="floor <= first"):
+        otf.amortised_ot(trained_map, num_iterations=(4, 16))
+
+
+@pytest.mark.long
+def test_no_online_training_leaves_the_map_as_it_is_and_jit_agrees(trained):
+    trained_map, _, _ = trained
+    model = scalar_model()
+    update = otf.amortised_ot(trained_map)
+    particles = jax.random.normal(jax.random.key(12), (100, 1))
+    state = update.init(jax.random.key(13), particles, model)
+    posterior, after, _ = update.apply(jax.random.key(14), state, particles, jnp.array([1.0]), model)
+    for got, want in zip(jax.tree.leaves(after.training.params), jax.tree.leaves(trained_map.params)):
+        np.testing.assert_array_equal(got, want)
+    jitted = jax.jit(update.apply, static_argnums=())(jax.random.key(14), state, particles, jnp.array([1.0]), model)
+    np.testing.assert_allclose(jitted[0], posterior, rtol=1e-6, atol=1e-6)
+    # The map is the one transport applies.
+    np.testing.assert_allclose(update.transport(after, particles, jnp.array([1.0])), posterior, rtol=1e-6, atol=1e-6)
+
+
+def test_another_map_of_the_same_networks_reuses_the_compiled_filter(contextual):
+    from ot_filter.filtering import _run_filter
+
+    trained_map = contextual
+    model = scalar_model()
+    _, observations = otf.simulate(jax.random.key(15), model, 10)
+    otf.run_filter(jax.random.key(16), model, otf.amortised_ot(trained_map), observations, 50)
+    size = _run_filter._cache_size()
+    other = trained_map._replace(params=jax.tree.map(lambda a: a * 0.5, trained_map.params),
+                                 context_scaling=jax.tree.map(lambda a: a + 1.0, trained_map.context_scaling))
+    otf.run_filter(jax.random.key(16), model, otf.amortised_ot(other), observations, 50)
+    assert _run_filter._cache_size() == size
+
+
+@pytest.mark.long
+@pytest.mark.parametrize("which", ["plain", "contextual"])
+def test_a_saved_map_reloads_bit_identically_and_filters_identically(which, trained, contextual, tmp_path):
+    trained_map = trained[0] if which == "plain" else contextual
+    assert (trained_map.context_scaling is None) == (which == "plain")
+    save_map(tmp_path / "map", trained_map)
+    loaded = load_map(tmp_path / "map", model="scalar-lg", state_dim=1, observation_dim=1)
+    assert isinstance(loaded, AmortisedMap) and loaded.config == trained_map.config
+    for got, want in zip(jax.tree.leaves((loaded.params, loaded.context_scaling)),
+                         jax.tree.leaves((trained_map.params, trained_map.context_scaling))):
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+    record = json.loads((tmp_path / "map" / "map.json").read_text())
+    assert set(record["versions"]) == {"ot_filter", "jax", "flax"} and record["config"]["model"] == "scalar-lg"
+    model = scalar_model()
+    _, observations = otf.simulate(jax.random.key(17), model, 15)
+    first = otf.run_filter(jax.random.key(18), model, otf.amortised_ot(trained_map, 3), observations, 100)
+    second = otf.run_filter(jax.random.key(18), model, otf.amortised_ot(loaded, 3), observations, 100)
+    np.testing.assert_array_equal(first.mean, second.mean)
+    np.testing.assert_array_equal(first.final_particles, second.final_particles)
+
+
+@pytest.mark.long
+def test_a_map_for_another_model_is_refused(trained, tmp_path):
+    trained_map, _, _ = trained
+    save_map(tmp_path / "map", trained_map)
+    with pytest.raises(MapMismatchError, match="trained for model 'scalar-lg'.*asked for model 'lorenz63'"):
+        load_map(tmp_path / "map", model="lorenz63")
+    with pytest.raises(MapMismatchError, match="state dimension 1.*state_dim 3"):
+        load_map(tmp_path / "map", state_dim=3)
+    # A model of other dimensions, given the map directly, is refused at init.
+    lorenz = otf.models.lorenz63()
+    with pytest.raises(ValueError, match="trained for 'scalar-lg' with state dimension 1"):
+        otf.run_filter(jax.random.key(0), lorenz, otf.amortised_ot(trained_map),
+                       jnp.zeros((3, 3)), 10)
+    # A parameter file that does not match its record.
+    (tmp_path / "map" / "params.msgpack").write_bytes(b"\x80")
+    with pytest.raises(MapMismatchError, match="SHA-256"):
+        load_map(tmp_path / "map")
+    with pytest.raises(FileNotFoundError, match="no amortised map"):
+        load_map(tmp_path / "nothing")
+    with pytest.raises(TypeError, match="AmortisedMap"):
+        otf.amortised_ot(trained_map.params)
+
+
+def test_context_features_tell_a_two_mode_prior_from_a_gaussian_and_carry_the_scale():
+    from ot_filter.transport.context import conditioning, context_features, fit_context_scaling
+
+    gaussian = jax.random.normal(jax.random.key(20), (20_000, 1))
+    two_modes = jnp.where(jax.random.bernoulli(jax.random.key(21), 0.5, (20_000, 1)), 1.0, -1.0)
+    scaling = Standardisation(jnp.array([5.0]), jnp.array([2.0]), jnp.array([-1.0]), jnp.array([0.5]))
+    features = context_features(scaling, gaussian)
+    np.testing.assert_allclose(features[:4], [5.0, np.log(2.0), -1.0, np.log(0.5)], rtol=1e-6)
+    # Skewness 0 (Monte-Carlo std sqrt(6 / 20000) = 0.017); excess kurtosis 0 for a Gaussian
+    # (std sqrt(24 / 20000) = 0.035), -2 for +-1 (exactly, whatever the mode masses' draw).
+    assert abs(float(features[4])) < 0.09 and abs(float(features[5])) < 0.18
+    two_mode_features = context_features(scaling, two_modes)
+    np.testing.assert_allclose(two_mode_features[5], -2.0 + 0.0 * two_mode_features[4], atol=0.02)
+    # Unequal modes: +-1 with mass 0.8 / 0.2 (standardised) has skewness (0.2 - 0.8) / 0.4 = -1.5.
+    skewed = jnp.where(jnp.arange(10_000) < 8_000, 1.0, -1.0)[:, None]
+    skewed = (skewed - skewed.mean()) / skewed.std()
+    np.testing.assert_allclose(context_features(scaling, skewed)[4], -1.5, rtol=1e-4)
+    # Padding rows do not count.
+    active = jnp.arange(20_000) < 10_000
+    padded = jnp.where(active[:, None], two_modes, 100.0)
+    assert float(context_features(scaling, padded, active)[5]) < -1.9
+    normaliser = fit_context_scaling(jnp.stack([features, 2 * features]))
+    assert np.all(np.asarray(normaliser.scale) > 0)
+    assert conditioning(jnp.zeros((7, 2)), jnp.ones(5)).shape == (7, 7)
+    assert conditioning(jnp.zeros((7, 2)), None).shape == (7, 2)
