@@ -25,12 +25,12 @@ import numpy as np  # noqa: E402
 
 from ot_filter.experiments._common import write_text_atomic  # noqa: E402
 from ot_filter.experiments.amortised import (  # noqa: E402
-    map_for, map_name, plot_validation, run_amortised_dynamic, run_amortised_lorenz63,
+    WARM_OPTIONS, map_for, map_name, plot_validation, run_amortised_dynamic, run_amortised_lorenz63,
 )
 
 METHODS = ("enkf", "sir", "ot", "amortised", "amortised_warm")
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT, online", "amortised": "amortised (a): no training",
-          "amortised_warm": "amortised (b): a few iterations a step (experiments.amortised.WARM_OPTIONS)"}
+          "amortised_warm": "amortised (b): warm-started, a few iterations a step"}
 
 
 def _row(summary, name, metric):
@@ -96,7 +96,9 @@ def markdown(records):
             lines.append(f"| {LABELS[m]} | {row['error']:.4f} ± {row['stderr']:.4f} | "
                          f"{row['seconds_per_step'] * 1e3:.3f} | {row['cost_vs_enkf']:.1f} | {row['diverged_steps']} |")
         info = record["offline_info"]
-        lines += ["", f"- (a) / online OT error: {record['a_vs_online']:.2f}; (b) / online OT: {record['b_vs_online']:.2f}.",
+        warm = WARM_OPTIONS["dynamic" if record["experiment"].startswith("dynamic") else "lorenz63"]
+        lines += ["", f"- (b): `amortised_ot(map, {', '.join(f'{k}={v}' for k, v in warm.items())})`.",
+                  f"- (a) / online OT error: {record['a_vs_online']:.2f}; (b) / online OT: {record['b_vs_online']:.2f}.",
                   f"- Offline training: {info['seconds']:.0f} s ({info['rounds']} rounds, {info['iterations']} "
                   f"iterations, {info['simulations']} simulations of {info['steps']} steps).",
                   f"- Break-even against the online OT filter: (b) after "
@@ -112,15 +114,19 @@ def main():
     parser.add_argument("--observed", default="0,2;0")
     parser.add_argument("--simulations", type=int, default=10)
     parser.add_argument("--out", default="benchmarks/results/amortised_ot")
+    parser.add_argument("--merge", help="another run's amortised_ot.json whose experiments join OUT's (then "
+                                        "the tables and figure are rewritten; nothing runs)")
     args = parser.parse_args()
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, "amortised_ot.json")
     records = json.load(open(path)) if os.path.exists(path) else []
     new = []
-    if args.part in ("dynamic", "all"):
+    if args.merge:
+        new = json.load(open(args.merge))
+    elif args.part in ("dynamic", "all"):
         new += [_compare("dynamic", jax.random.key(18), args.simulations, args.out, run_amortised_dynamic, "w1",
                          dim=int(d)) for d in args.dims.split(",")]
-    if args.part in ("lorenz63", "all"):
+    if args.part in ("lorenz63", "all") and not args.merge:
         new += [_compare("lorenz63", jax.random.key(63), args.simulations, args.out, run_amortised_lorenz63, "mse",
                          observed=tuple(int(i) for i in group.split(","))) for group in args.observed.split(";")]
     names = {r["experiment"] for r in new}

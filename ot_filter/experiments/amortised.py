@@ -139,8 +139,12 @@ def plot_validation(curves: dict, out_dir: str, name: str = "amortised_validatio
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 3.4), squeeze=False)
-    for ax, (title, arrays) in zip(axes[0], curves.items()):
+    columns = min(2, len(curves))
+    rows = -(-len(curves) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(5.5 * columns, 3.4 * rows + 0.6), squeeze=False)
+    for ax in axes.flat[len(curves):]:
+        ax.set_visible(False)
+    for ax, (title, arrays) in zip(axes.flat, curves.items()):
         ax.plot(arrays["iterations"], arrays["validation_loss"], "o-", ms=3, label="held-out ensembles")
         ax.plot(arrays["iterations"], arrays["training_loss"], ".--", ms=3, alpha=0.7, label="training batches")
         for boundary in arrays["iterations"][np.flatnonzero(np.diff(arrays["round"])) + 1]:
