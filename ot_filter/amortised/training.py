@@ -27,9 +27,9 @@ from ot_filter.lib.validation import check_int, check_number
 from ot_filter.model import StateSpaceModel, simulate
 from ot_filter.progress import report
 from ot_filter.transport.context import ContextScaling, context_size, fit_context_scaling
-from ot_filter.transport.networks import ACTIVATIONS, PotentialNetwork, TransportNetwork
+from ot_filter.transport.networks import ACTIVATIONS
 from ot_filter.transport.saddle import SaddleParams, TrainingState, evaluate_saddle, train_saddle
-from ot_filter.updates.ot import OTSettings, OTStructure, init_training, optimizers, recipe
+from ot_filter.updates.ot import OTSettings, OTStructure, init_training, networks, optimizers, recipe
 
 Array = jax.Array
 
@@ -181,14 +181,9 @@ def _network_fields(config: MapConfig):
             config.enkf_layer, config.context)
 
 
-def _networks(structure: OTStructure):
-    return (PotentialNetwork(structure.width, structure.num_blocks, structure.activation),
-            TransportNetwork(structure.width, structure.num_blocks, structure.activation))
-
-
 @partial(jax.jit, static_argnames=("structure", "num_iterations", "ensembles_per_batch"))
 def _train_chunk(key, training, model, bank, settings, structure, num_iterations, ensembles_per_batch):
-    potential_net, transport_net = _networks(structure)
+    potential_net, transport_net = networks(structure)
     potential_optimizer, transport_optimizer = optimizers(settings, structure)
     training, trace = train_saddle(
         key, training,
@@ -206,7 +201,7 @@ def _train_chunk(key, training, model, bank, settings, structure, num_iterations
 def _validate(key, params, model, bank, settings, structure, ensembles_per_batch, num_batches):
     """Mean J of fixed parameters on ``num_batches`` mini-batches of held-out ensembles (the same
     batches at every call: the key is fixed)."""
-    potential_net, transport_net = _networks(structure)
+    potential_net, transport_net = networks(structure)
 
     def one(batch_key):
         return evaluate_saddle(

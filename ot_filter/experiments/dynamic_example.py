@@ -265,7 +265,9 @@ def run_dynamic_example(
         raise ValueError("num_steps and num_simulations must be >= 1")
     model = dynamic_model(dim)
     # Localised methods are told that the coordinates are independent (radius 0: own y only).
-    updates = make_updates(methods, ot_options, OT_FILTER_OPTIONS, model=model, radius=0.0) if methods or not extra_updates else {}
+    updates = {}
+    if methods or not extra_updates:  # (a run of extra updates alone needs no named method)
+        updates = make_updates(methods, ot_options, OT_FILTER_OPTIONS, model=model, radius=0.0)
     clash = set(updates) & set(extra_updates or {})
     if clash:
         raise ValueError(f"extra_updates repeat methods already run: {sorted(clash)}")
