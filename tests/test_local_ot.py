@@ -213,3 +213,33 @@ def test_local_ot_reaches_twice_the_floor_on_the_static_example_at_n_10():
     assert not bool(info.diverged)
     assert float(found.w1.mean()) <= 2.0 * float(floor.w1.mean())
     assert np.all(np.abs(np.mean(np.asarray(posterior) > 0, axis=0) - 0.5) < 0.1)  # both modes everywhere
+
+
+@pytest.mark.parametrize("state_radius", [0.0, 1.0])
+def test_the_deterministic_layer_is_the_letkf_with_hard_windows(x64, state_radius):
+    """The layer alone (the fallback) at the actual observation: the LETKF with a step taper of
+    the same radius and the same inflation, missing components included."""
+    model = otf.models.lorenz96(dim=12, observed=np.arange(0, 12, 2))
+    prior = 3.0 + 2.0 * jax.random.normal(jax.random.PRNGKey(0), (40, 12))
+    observation = jax.vmap(model.observation_function)(prior[:1])[0] + 0.5
+    observation = observation.at[2].set(jnp.nan)
+    radius = 2.5
+    update = local_ot(local_windows(model.geometry, radius, state_radius), num_iterations=20,
+                      enkf_layer="deterministic", inflation=1.1, divergence_threshold=1e-9)
+    state = update.init(jax.random.PRNGKey(1), prior, model)
+    posterior, state, info = update.apply(jax.random.PRNGKey(2), state, prior, observation, model)
+    assert bool(info.diverged)  # forced: the layer alone
+    letkf = otf.letkf(otf.localisation(model.geometry, radius, taper="step"), inflation=1.1)
+    expected, _, _ = letkf.apply(jax.random.PRNGKey(3), letkf.init(jax.random.PRNGKey(3), prior, model),
+                                 prior, observation, model)
+    np.testing.assert_allclose(posterior, expected, rtol=1e-8, atol=1e-8)
+
+
+def test_the_deterministic_layer_needs_gaussian_observation_noise():
+    model, prior, _, _ = _static_problem(3, num=50)
+    update = local_ot(local_windows(model.geometry, 0.0), num_iterations=2, enkf_layer="deterministic")
+    state = update.init(jax.random.PRNGKey(0), prior, model)
+    with pytest.raises(ValueError, match="additive Gaussian"):
+        update.apply(jax.random.PRNGKey(1), state, prior, jnp.ones(3), model._replace(observation_function=None))
+    with pytest.raises(ValueError, match="enkf_layer must be"):
+        local_ot(local_windows(model.geometry, 0.0), enkf_layer="square-root")

@@ -97,3 +97,67 @@ def test_iteration_budget_halves_down_to_the_floor():
     budgets = [int(iteration_budget(jnp.asarray(k), 1024, 64)) for k in range(7)]
     assert budgets == [1024, 512, 256, 128, 64, 64, 64]
     assert int(iteration_budget(jnp.asarray(100), 1024, 64)) == 64
+
+
+def test_gaussian_transport_matrix_maps_one_covariance_onto_the_other_and_moves_least(x64):
+    import scipy.linalg
+
+    from ot_filter.lib.gaussian import gaussian_transport_matrix
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(4, 4)), rng.normal(size=(4, 4))
+    prior, target = a @ a.T + 0.1 * np.eye(4), b @ b.T + 0.1 * np.eye(4)
+    matrix = np.asarray(gaussian_transport_matrix(jnp.asarray(prior), jnp.asarray(target)))
+    np.testing.assert_allclose(matrix @ prior @ matrix.T, target, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(matrix, matrix.T, atol=1e-12)
+    assert np.linalg.eigvalsh(matrix).min() > 0  # the OT map is the gradient of a convex function
+    root = scipy.linalg.sqrtm(prior).real
+    inverse_root = np.linalg.inv(root)
+    expected = inverse_root @ scipy.linalg.sqrtm(root @ target @ root).real @ inverse_root
+    np.testing.assert_allclose(matrix, expected, rtol=1e-8, atol=1e-8)
+    # In one dimension: the ratio of standard deviations.
+    np.testing.assert_allclose(gaussian_transport_matrix(jnp.array([[4.0]]), jnp.array([[1.0]])), [[0.5]])
+
+
+def test_deterministic_layer_gives_the_kalman_posterior_moments_of_its_own_sample(x64):
+    from ot_filter.transport.saddle import deterministic_layer, enkf_gain, transport_input
+
+    key_x, key_h, key_v = jax.random.split(jax.random.PRNGKey(0), 3)
+    num, n, m = 500, 3, 2
+    x = jax.random.normal(key_x, (num, n)) @ jnp.array([[1.0, 0.5, 0.2], [0.0, 1.0, 0.3], [0.0, 0.0, 0.7]]) + 1.0
+    y = jnp.tanh(x[:, :m]) + 0.3 * jax.random.normal(key_v, (num, m))  # nonlinear: moments only
+    layer = deterministic_layer(x, y)
+    np.testing.assert_allclose(layer.gain, enkf_gain(x, y), rtol=1e-12)  # the same gain as the perturbed layer
+    observation = jnp.array([0.5, -0.2])
+    moved = np.asarray(transport_input(x, jnp.broadcast_to(observation, y.shape), y * np.nan, layer))
+    X, Y = np.asarray(x), np.asarray(y)
+    cov = np.cov(np.concatenate([X, Y], axis=1).T)
+    cov_x, cross, cov_y = cov[:n, :n], cov[:n, n:], cov[n:, n:]
+    gain = cross @ np.linalg.inv(cov_y)
+    # The sample's Kalman posterior, up to the relative ridge (1e-4): ybar is not read (NaN above).
+    np.testing.assert_allclose(moved.mean(axis=0), X.mean(0) + gain @ (np.asarray(observation) - Y.mean(0)),
+                               atol=1e-3)
+    np.testing.assert_allclose(np.cov(moved.T), cov_x - gain @ cross.T, atol=2e-3)
+
+
+def test_ot_with_an_untrained_map_and_the_deterministic_layer_is_the_sample_kalman_posterior(x64):
+    """T starts as the identity: with a negligible learning rate the global update is its
+    deterministic layer, whose particles have the sample Kalman mean and covariance (to the
+    1e-4 ridge) in the update's own simulated observations."""
+    import ot_filter as otf
+    from conftest import random_linear_gaussian
+
+    model = otf.models.linear_gaussian(*random_linear_gaussian(3))
+    prior = jax.vmap(model.sample_initial)(jax.random.split(jax.random.PRNGKey(0), 400))
+    update = otf.ot(num_iterations=1, enkf_layer="deterministic", transport_learning_rate=1e-12,
+                    concavity_points=0)
+    state = update.init(jax.random.PRNGKey(1), prior, model)
+    observation = jnp.array([0.3, -0.4])
+    posterior, state, info = update.apply(jax.random.PRNGKey(2), state, prior, observation, model)
+    X, Y = np.asarray(prior), np.asarray(state.simulated_observations)
+    cov = np.cov(np.concatenate([X, Y], axis=1).T)
+    n = X.shape[1]
+    gain = cov[:n, n:] @ np.linalg.inv(cov[n:, n:])
+    np.testing.assert_allclose(np.mean(posterior, axis=0), X.mean(0) + gain @ (np.asarray(observation) - Y.mean(0)),
+                               atol=2e-3)
+    np.testing.assert_allclose(np.cov(np.asarray(posterior).T), cov[:n, :n] - gain @ cov[:n, n:].T, atol=2e-3)

@@ -13,6 +13,12 @@ entries zero, the gain's missing columns are exactly 0 and its observed ones tho
 deleted-rows problem: the lower Cholesky factor of such a matrix has the same block structure
 (no fill-in: L_ij = 0 when exactly one of i, j is missing), so the observed block's arithmetic
 is that of the smaller matrix. The log-density then counts the observed dimensions only.
+
+The optimal transport map between two Gaussians N(m, P) and N(m', Q) (quadratic cost) is affine,
+x -> m' + A (x - m) with the symmetric A = P^{-1/2} (P^{1/2} Q P^{1/2})^{1/2} P^{-1/2}
+(``gaussian_transport_matrix``): of every map with A P A^T = Q, the one that moves the particles
+least. Applied with Q the Kalman posterior covariance it is the deterministic EnKF layer of the
+OT updates (``transport/saddle.py``).
 """
 
 from __future__ import annotations
@@ -20,9 +26,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ot_filter.lib.linalg import symmetrise
+
 Array = jax.Array
 
-__all__ = ["cholesky_gain", "gaussian_log_density", "restrict_to_observed"]
+__all__ = ["cholesky_gain", "gaussian_log_density", "gaussian_transport_matrix", "restrict_to_observed"]
 
 
 def cholesky_gain(cross_covariance: Array, innovation_covariance: Array) -> tuple[Array, Array]:
@@ -34,6 +42,19 @@ def cholesky_gain(cross_covariance: Array, innovation_covariance: Array) -> tupl
     chol = jnp.linalg.cholesky(innovation_covariance)
     gain = jax.scipy.linalg.cho_solve((chol, True), cross_covariance.T).T
     return gain, chol
+
+
+def gaussian_transport_matrix(prior_covariance: Array, target_covariance: Array) -> Array:
+    """``A[n, n]``: the linear part of the OT map from N(., P) to N(., Q) (module docstring), for
+    a positive-definite P and a positive semi-definite Q (two symmetric eigendecompositions; a
+    slightly indefinite Q from round-off is clipped to its PSD part)."""
+    eigenvalues, vectors = jnp.linalg.eigh(symmetrise(prior_covariance))
+    eigenvalues = jnp.maximum(eigenvalues, jnp.finfo(eigenvalues.dtype).tiny)
+    root = (vectors * jnp.sqrt(eigenvalues)) @ vectors.T
+    inverse_root = (vectors / jnp.sqrt(eigenvalues)) @ vectors.T
+    middle, middle_vectors = jnp.linalg.eigh(symmetrise(root @ target_covariance @ root))
+    middle_root = (middle_vectors * jnp.sqrt(jnp.clip(middle, 0.0))) @ middle_vectors.T
+    return symmetrise(inverse_root @ middle_root @ inverse_root)
 
 
 def restrict_to_observed(matrix: Array, observed: Array) -> Array:

@@ -28,17 +28,22 @@ __all__ = ["etkf_transform"]
 def etkf_transform(whitened: Array, innovation: Array, anomalies: Array):
     """``(w [N], A_a [N, q], s2)``: the mean weights, the posterior anomalies and the
     eigenvalues of the Gram matrix (``min(N, p)`` of them) for ``S [N, p]``, ``d [p]``,
-    ``A [N, q]`` (formulas in the module docstring)."""
+    ``A [N, q]`` (formulas in the module docstring). ``d [p, r]``: r innovations at once (w is
+    linear in d), ``w [N, r]``."""
     num, size = whitened.shape
+
+    def per_eigenvalue(values, factors):  # scale the leading (eigen) axis of values
+        return values * factors.reshape(factors.shape + (1,) * (values.ndim - 1))
+
     if num <= size:
         s2, left = jnp.linalg.eigh(whitened @ whitened.T)
         s2 = jnp.clip(s2, 0.0)
-        mean_weights = left @ ((left.T @ (whitened @ innovation)) / (1.0 + s2))
+        mean_weights = left @ per_eigenvalue(left.T @ (whitened @ innovation), 1.0 / (1.0 + s2))
         shrink = 1.0 / jnp.sqrt(1.0 + s2) - 1.0
         return mean_weights, anomalies + left @ (shrink[:, None] * (left.T @ anomalies)), s2
     s2, right = jnp.linalg.eigh(whitened.T @ whitened)
     s2 = jnp.clip(s2, 0.0)
-    mean_weights = whitened @ (right @ ((right.T @ innovation) / (1.0 + s2)))
+    mean_weights = whitened @ (right @ per_eigenvalue(right.T @ innovation, 1.0 / (1.0 + s2)))
     root = jnp.sqrt(1.0 + s2)
     shrink_over_s2 = -1.0 / (root * (1.0 + root))
     projected = right.T @ (whitened.T @ anomalies)  # [p, q]

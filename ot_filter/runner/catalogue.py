@@ -308,15 +308,19 @@ def _lorenz63_plot(options, groups, out):
 
 
 # Lorenz-96's localised updates: radius 4 for the LETKF (DAPPER's sakov2008 tuning, Gaspari-Cohn),
-# and for the localised OT filter windows of 3 observations either side and 1 state coordinate,
-# the local EnKF layer and inflation 1.04 (``benchmarks/ot_lorenz96.py`` measures them).
-LORENZ96_LOCAL = dict(letkf_radius=4.0, ot_radius=3.0, ot_state_radius=1.0, inflation=1.04)
+# and for the localised OT filter windows of 4 observations either side of each coordinate, the
+# deterministic layer (the LETKF of those windows), inflation 1.04, and fresh networks at every
+# step trained for 64 iterations, so that T starts from the layer. Warm-started from step to step
+# the shared map drifted (its J crept from 0 to 0.1-0.2 after 200 steps and the RMSE doubled); a
+# loss bound that restarted it still left RMSE 0.301 against 0.258 for fresh networks
+# (``benchmarks/ot_lorenz96.py`` measures them).
+LORENZ96_LOCAL = dict(letkf_radius=4.0, ot_radius=4.0, ot_state_radius=0.0, inflation=1.04, ot_iterations=64)
 
 
 def lorenz96_update(method: str, model=None):
     """Lorenz-96 updates: DAPPER's square-root EnKF with inflation 1.02 (DAPPER tunes 1.013 for
     N = 24), the LETKF, the regularised SIR of the Lorenz-63 benchmark, the OT filter with the
-    1024 -> 64 schedule and the localised OT filter (``LORENZ96_LOCAL``; these two need the
+    1024 -> 64 schedule and the localised OT filter (``LORENZ96_LOCAL``; the last two need the
     ``model``'s geometry)."""
     import ot_filter as otf
     from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS
@@ -334,7 +338,8 @@ def lorenz96_update(method: str, model=None):
         return otf.letkf(otf.localisation(model.geometry, local["letkf_radius"]), inflation=local["inflation"])
     if method == "local_ot":
         return otf.local_ot(otf.local_windows(model.geometry, local["ot_radius"], local["ot_state_radius"]),
-                            num_iterations=(1024, 64), enkf_layer=True, inflation=local["inflation"])
+                            num_iterations=local["ot_iterations"], warm_start=False, enkf_layer="deterministic",
+                            inflation=local["inflation"])
     raise ValueError(f"unknown Lorenz-96 method {method!r}")
 
 

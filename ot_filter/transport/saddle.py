@@ -18,6 +18,13 @@ Optional EnKF layer (chapter, "EnKF layer"): T's input is x_e = xbar + K (y - yb
 the observation simulated from xbar and K = Cov(X, Y) Cov(Y)^{-1} is estimated from the current
 mini-batch during training (from all particles at inference). The network then only learns the
 non-Gaussian correction.
+
+Deterministic layer (``DeterministicLayer``, ``deterministic_layer``): x_e = m + K (y - ybar_mean)
++ A (xbar - m), A the Gaussian OT map from the prior's covariance P to the Kalman posterior's
+P - K Cov(Y, X) (``lib.gaussian.gaussian_transport_matrix``). For xbar independent of y it has
+the prior's moments, and at a fixed y the posterior's, exactly, without the sampling noise of
+the observation perturbation ybar - E Y (the square-root EnKF's advantage over the perturbed one).
+Its moments come from all particles, never from a mini-batch.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import jax.numpy as jnp
 import optax
 
 from ot_filter.lib.ensemble import masked_mean_and_anomalies, mean_and_anomalies
-from ot_filter.lib.gaussian import cholesky_gain
+from ot_filter.lib.gaussian import cholesky_gain, gaussian_transport_matrix
 from ot_filter.lib.linalg import symmetrise
 from ot_filter.transport.context import conditioning
 
@@ -37,11 +44,15 @@ Array = jax.Array
 
 __all__ = [
     "Batch",
+    "DeterministicLayer",
     "SaddleParams",
     "TrainingState",
     "TrainingTrace",
     "batch_gain",
+    "deterministic_layer",
+    "empty_layer",
     "enkf_gain",
+    "fit_layer",
     "evaluate_saddle",
     "saddle_objective",
     "train_saddle",
@@ -83,33 +94,87 @@ class Batch(NamedTuple):
     #                               appended to y wherever a network reads it; None: nothing
 
 
-def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
-    """``K[n, m] = Cov(X, Y) (Cov(Y) + ridge I)^{-1}`` from the pairs ``x[B, n], y[B, m]``
-    (only the rows where ``active[B]`` is True, if given: a padded particle axis)."""
+class DeterministicLayer(NamedTuple):
+    """x_e = xbar + K (y - y_mean) + (A - I)(xbar - x_mean) (module docstring); leaves may carry
+    leading axes (one layer per row of a batch, or per coordinate of the localised update)."""
+
+    gain: Array  # [..., n, m] K
+    shrink: Array  # [..., n, n] A - I
+    x_mean: Array  # [..., n]
+    y_mean: Array  # [..., m]
+
+
+def _moments(x: Array, y: Array, active: Array | None):
+    """Means, Cov(X), Cov(X, Y) and Cov(Y) of the pairs ``x[B, n], y[B, m]`` (the ``active`` rows)."""
     if active is None:
         num = x.shape[0]
-        _, x_anomalies = mean_and_anomalies(x)
-        _, y_anomalies = mean_and_anomalies(y)
+        x_mean, x_anomalies = mean_and_anomalies(x)
+        y_mean, y_anomalies = mean_and_anomalies(y)
     else:
         num_active = jnp.sum(active, dtype=jnp.int32)
         num = num_active.astype(x.dtype)
-        _, x_anomalies = masked_mean_and_anomalies(x, active, num_active)
-        _, y_anomalies = masked_mean_and_anomalies(y, active, num_active)
+        x_mean, x_anomalies = masked_mean_and_anomalies(x, active, num_active)
+        y_mean, y_anomalies = masked_mean_and_anomalies(y, active, num_active)
+    cov_x = symmetrise(x_anomalies.T @ x_anomalies / (num - 1))
     cross = x_anomalies.T @ y_anomalies / (num - 1)
     cov_y = symmetrise(y_anomalies.T @ y_anomalies / (num - 1))
-    ridge = GAIN_RIDGE * (1.0 + jnp.trace(cov_y) / cov_y.shape[0])
-    gain, _ = cholesky_gain(cross, cov_y + ridge * jnp.eye(cov_y.shape[0], dtype=cov_y.dtype))
+    return x_mean, y_mean, cov_x, cross, cov_y
+
+
+def _ridged(cov: Array) -> Array:
+    """``cov + ridge I`` with the relative ridge ``GAIN_RIDGE`` (padding coordinates stay regular)."""
+    ridge = GAIN_RIDGE * (1.0 + jnp.trace(cov) / cov.shape[0])
+    return cov + ridge * jnp.eye(cov.shape[0], dtype=cov.dtype)
+
+
+def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
+    """``K[n, m] = Cov(X, Y) (Cov(Y) + ridge I)^{-1}`` from the pairs ``x[B, n], y[B, m]``
+    (only the rows where ``active[B]`` is True, if given: a padded particle axis)."""
+    _, _, _, cross, cov_y = _moments(x, y, active)
+    gain, _ = cholesky_gain(cross, _ridged(cov_y))
     return gain
 
 
-def transport_input(xbar: Array, y: Array, ybar: Array, gain: Array | None) -> Array:
-    """The EnKF layer x_e = xbar + K (y - ybar), or xbar itself without it; ``gain[n, m]`` shared
-    by the rows, or ``gain[B, n, m]`` one per row."""
+def deterministic_layer(x: Array, y: Array, active: Array | None = None) -> DeterministicLayer:
+    """The deterministic layer's K, A - I and means from the pairs ``x[B, n], y[B, m]`` (the
+    ``active`` rows): A maps Cov(X) to Cov(X) - K Cov(Y, X), both with the relative ridge."""
+    x_mean, y_mean, cov_x, cross, cov_y = _moments(x, y, active)
+    gain, _ = cholesky_gain(cross, _ridged(cov_y))
+    prior = _ridged(cov_x)
+    transform = gaussian_transport_matrix(prior, symmetrise(prior - gain @ cross.T))
+    return DeterministicLayer(gain, transform - jnp.eye(x.shape[1], dtype=x.dtype), x_mean, y_mean)
+
+
+def fit_layer(x: Array, y: Array, active: Array | None = None, deterministic: bool = False):
+    """The layer of the pairs ``x[B, n], y[B, m]``: a ``DeterministicLayer``, else the EnKF gain."""
+    return deterministic_layer(x, y, active) if deterministic else enkf_gain(x, y, active)
+
+
+def empty_layer(n: int, m: int, dtype, deterministic: bool = False):
+    """Zeros shaped like ``fit_layer``'s result (a state's layer before the first update)."""
+    if deterministic:
+        return DeterministicLayer(jnp.zeros((n, m), dtype), jnp.zeros((n, n), dtype),
+                                  jnp.zeros((n,), dtype), jnp.zeros((m,), dtype))
+    return jnp.zeros((n, m), dtype)
+
+
+def _rows(matrix: Array, vectors: Array) -> Array:
+    """``matrix @ vector`` for each row of ``vectors[B, k]``: ``matrix[j, k]`` shared, or
+    ``matrix[B, j, k]`` one per row."""
+    if matrix.ndim == 3:
+        return jnp.einsum("bjk,bk->bj", matrix, vectors)
+    return vectors @ matrix.T
+
+
+def transport_input(xbar: Array, y: Array, ybar: Array, gain) -> Array:
+    """The layer's output x_e: the EnKF layer xbar + K (y - ybar) for ``gain`` K (``[n, m]``
+    shared by the rows, or ``[B, n, m]`` one per row), the deterministic layer for a
+    ``DeterministicLayer`` (which does not read ybar), xbar itself for None."""
     if gain is None:
         return xbar
-    if gain.ndim == 3:
-        return xbar + jnp.einsum("bnm,bm->bn", gain, y - ybar)
-    return xbar + (y - ybar) @ gain.T
+    if isinstance(gain, DeterministicLayer):
+        return xbar + _rows(gain.gain, y - gain.y_mean) + _rows(gain.shrink, xbar - gain.x_mean)
+    return xbar + _rows(gain, y - ybar)
 
 
 def transport_cost(transport: Callable, batch: Batch, gain, cost_from_layer: bool = False):

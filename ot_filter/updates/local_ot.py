@@ -35,8 +35,21 @@ apart.
 EnKF layer (``enkf_layer=True``): each coordinate's local gain K_i = Cov(X_W, Y_O) Cov(Y_O)^-1
 from all particles, and T's input is x_W + K_i (y_O - Y_O). The transport cost is measured from
 that input (``saddle.transport_cost``): T corrects the local EnKF analysis and is the identity
-where it is already right. The same local gain gives the fallback when training diverges: the local perturbed-observation EnKF (the layer alone), whose
-cost is also linear in n (the global EnKF fallback of ``ot()`` would not localise).
+where it is already right. The same local gain gives the fallback when training diverges: the
+local perturbed-observation EnKF (the layer alone), whose cost is also linear in n (the global
+EnKF fallback of ``ot()`` would not localise).
+
+Deterministic layer (``enkf_layer="deterministic"``, models with additive Gaussian noise): each
+window's local ETKF (``lib.transform``; the window's observations, unweighted) gives every prior
+particle q its deterministic analysis anomaly d_q and the mean gain K_i, and T's input for a copy
+q and an observation y is m_W + d_q + K_i (y_O - mean h(X)_O): at the actual observation the
+LETKF's analysis (hard windows), and for y drawn with an independent x the prior's first two
+moments, as the map's training needs. It has no perturbation noise, which is what held the
+perturbed layer back on Lorenz-96 (``benchmarks/ot_lorenz96.py``). A state-space square root per
+window (``saddle.DeterministicLayer``, right for the global update) does not serve here: each
+coordinate's own transform mixes its neighbours' anomalies differently, the analysis loses the
+cross-covariances, and the filter diverged. The ensemble transform acts on the members, which
+neighbouring windows share.
 
 Training has no smoothed prior and no fresh observations: the observations of a jittered state
 would need the whole state, and there are N n local pairs (their small-N behaviour, N = 100 on
@@ -52,9 +65,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ot_filter.lib.ensemble import masked_mean_and_std
+from ot_filter.lib.ensemble import masked_mean_and_anomalies, masked_mean_and_std
 from ot_filter.lib.fallback import use_where
 from ot_filter.lib.static import bind
+from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_int, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
 from ot_filter.localisation import LocalWindows
@@ -102,8 +116,9 @@ class LocalOTState(NamedTuple):
 
 class LocalOTUpdate(NamedTuple):
     """``BayesUpdate``'s ``init``/``apply`` (``info`` is an ``OTInfo``; the c-concavity check is
-    off: +inf and 0), plus ``transport(state, particles, observation[m])``: the prior particles of
-    the last ``apply`` moved by its trained map for another observation."""
+    off: +inf and 0), plus ``transport(state, particles, observation[m], model=None)``: the prior
+    particles of the last ``apply`` moved by its trained map for another observation (the
+    deterministic layer needs the model)."""
 
     init: Callable[..., LocalOTState]
     apply: Callable[..., tuple[Array, LocalOTState, OTInfo]]
@@ -118,7 +133,7 @@ def local_ot(
     width: int = 32,
     num_blocks: int = 1,
     activation: str = "relu",
-    enkf_layer: bool = False,
+    enkf_layer: bool | str = False,
     potential_optimizer=None,
     transport_optimizer=None,
     warm_start: bool = True,
@@ -135,6 +150,8 @@ def local_ot(
     Args:
       windows: ``localisation.local_windows(model.geometry, radius, state_radius)``; e.g.
         radius 0 for coordinates that are independent and observed one by one.
+      enkf_layer: False, True (= ``"perturbed"``) or ``"deterministic"`` (module docstring; needs
+        ``model.observation_function`` and ``observation_noise_cov``, whose diagonal it uses).
       prior_context: Q > 0 gives the networks each window coordinate's prior quantiles at levels
         (k + 1/2) / Q (standardised, minus their mean over the coordinates): one shared map then
         serves coordinates whose priors differ in shape (a filter's coordinates after different
@@ -214,6 +231,9 @@ class _LocalData(NamedTuple):
     y: Array  # [N, n, C] its simulated local observations, the slot mask and the prior context
     observation: Array  # [n, C] the actual local observations, the slot mask and the context
     gain: Array  # [n, S, C] (zero on the mask and context columns: constant per coordinate)
+    layer_x: Array  # [N, n, S] and
+    layer_y: Array  # [N, n, C]: the layer's input is layer_x[q] + gain (y - layer_y[q]) for copy q:
+    #                 x and y (the perturbed layer), or m + d_q and the mean h(X) (deterministic)
 
 
 def local_prior_quantiles(xs: Array, active: Array, levels: Array) -> Array:
@@ -225,9 +245,10 @@ def local_prior_quantiles(xs: Array, active: Array, levels: Array) -> Array:
 
 
 def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Array, observed: Array,
-                active: Array) -> _LocalData:
+                active: Array, layer: tuple[Array, Array] | None = None) -> _LocalData:
     """Windows of standardised particles ``xs[N, n]`` and observations ``ys[N, m]``; missing
-    components (``observed[m]`` False) and padding are 0 with mask 0."""
+    components (``observed[m]`` False) and padding are 0 with mask 0. ``layer``: the standardised
+    ``h(X)[N, m]`` and noise variances ``[m]`` of the deterministic layer (None: perturbed)."""
     windows = numbers.windows
     mask = (windows.observations_valid & observed[windows.observations]).astype(xs.dtype)  # [n, K]
     quantiles = local_prior_quantiles(xs, active, numbers.context_levels)  # [n, Q]
@@ -241,21 +262,63 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
 
     x = xs[:, windows.state] * windows.state_valid.astype(xs.dtype)
     y = jax.vmap(local_y)(ys)
-    gain = jax.vmap(lambda xi, yi: enkf_gain(xi, yi, active), in_axes=(1, 1))(x, y)
-    return _LocalData(x, y, local_y(y_standard), gain)
+    if layer is None:
+        gain = jax.vmap(lambda xi, yi: enkf_gain(xi, yi, active), in_axes=(1, 1))(x, y)
+        return _LocalData(x, y, local_y(y_standard), gain, x, y)
+    layer_x, layer_y, gain = _local_transforms(x, *layer, mask, windows.observations, active, y.shape[-1])
+    return _LocalData(x, y, local_y(y_standard), gain, layer_x, layer_y)
+
+
+def _local_transforms(x: Array, predicted: Array, noise_variance: Array, mask: Array, observations: Array,
+                      active: Array, conditioning: int):
+    """The deterministic layer of every window: ``(m_W + d [N, n, S], mean h(X)_O [N, n, C],
+    K [n, S, C])`` from the windows ``x[N, n, S]``, the predicted observations ``predicted[N, m]``,
+    their noise variances ``[m]`` and the slot ``mask[n, K]`` (all standardised)."""
+    num_active = jnp.sum(active, dtype=jnp.int32)
+    scale = 1.0 / jnp.sqrt(jnp.maximum(num_active - 1, 1).astype(x.dtype))
+    predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
+    inverse_sd = mask / jnp.sqrt(noise_variance[observations])  # [n, K]; 0 on padding, missing
+
+    def one(x_window, slots, weight):
+        mean, anomalies = masked_mean_and_anomalies(x_window, active, num_active)  # [S], [N, S]
+        whitened = predicted_anomalies[:, slots] * (weight * scale)  # [N, K]
+        # The mean weights for the innovations of unit standardised y per slot: w = G diag(1/sd).
+        weights, posterior, _ = etkf_transform(whitened, jnp.diag(weight), anomalies)
+        gain = scale * anomalies.T @ weights  # [S, K]
+        padded = jnp.zeros((gain.shape[0], conditioning), x.dtype).at[:, :gain.shape[1]].set(gain)
+        start = jnp.zeros((conditioning,), x.dtype).at[:slots.shape[0]].set(predicted_mean[slots] * (weight > 0))
+        return mean + jnp.where(active[:, None], posterior, 0.0), start, padded
+
+    layer_x, start, gain = jax.vmap(one, in_axes=(1, 0, 0), out_axes=(1, 0, 0))(x, observations, inverse_sd)
+    return layer_x, jnp.broadcast_to(start, (x.shape[0],) + start.shape), gain
 
 
 def _move(data: _LocalData, transport: Callable | None, use_gain: bool) -> Array:
     """``[N, n]``: each coordinate's own component of the local map applied to every particle's
-    window (``transport`` None: the EnKF layer alone, the local perturbed-observation EnKF)."""
+    window (``transport`` None: the layer alone, the local perturbed or deterministic EnKF)."""
 
-    def one_coordinate(x, y_simulated, y, gain):
-        rows = jnp.broadcast_to(y, y_simulated.shape)
-        inputs = transport_input(x, rows, y_simulated, gain if use_gain else None)
+    def one_coordinate(x, y_start, y, gain):
+        rows = jnp.broadcast_to(y, y_start.shape)
+        inputs = transport_input(x, rows, y_start, gain if use_gain else None)
         moved = inputs if transport is None else transport(inputs, rows)
         return moved[:, 0]
 
-    return jax.vmap(one_coordinate, in_axes=(1, 1, 0, 0), out_axes=1)(data.x, data.y, data.observation, data.gain)
+    return jax.vmap(one_coordinate, in_axes=(1, 1, 0, 0), out_axes=1)(
+        data.layer_x if use_gain else data.x, data.layer_y, data.observation, data.gain)
+
+
+def _layer_inputs(structure: OTStructure, model: StateSpaceModel, particles: Array, scaling: Standardisation):
+    """The deterministic layer's standardised ``h(X)[N, m]`` and noise variances ``[m]``; None
+    for the perturbed layer (or none)."""
+    if not structure.deterministic_layer:
+        return None
+    if not model.has_gaussian_observation_noise:
+        raise ValueError("local_ot(enkf_layer='deterministic') needs a model with additive Gaussian "
+                         "observation noise: give model.observation_function and model.observation_noise_cov")
+    noise = jnp.asarray(model.observation_noise_cov, particles.dtype)
+    variance = noise if noise.ndim == 1 else jnp.diagonal(noise)
+    predicted = scaling.standardise_y(jax.vmap(model.observation_function)(particles))
+    return predicted, variance / scaling.y_scale**2
 
 
 @jax.jit(static_argnames=("structure",))
@@ -271,7 +334,8 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     prior = prior_data(settings, simulate_key, state.log_weights, particles, observation, model)
     particles, simulated, active, num_active, scaling, observed, xs, ys = prior
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
-    data = _local_data(numbers, xs, ys, y_standard, observed, active)
+    data = _local_data(numbers, xs, ys, y_standard, observed, active,
+                       _layer_inputs(structure, model, particles, scaling))
     active_index = jnp.argsort(~active, stable=True)
 
     def sample_batch(batch_key):
@@ -280,8 +344,8 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         coordinate = jax.random.randint(coordinate_key, shape, 0, n)
         pair = active_index[jax.random.randint(pair_key, shape, 0, num_active)]
         copy = active_index[jax.random.randint(copy_key, shape, 0, num_active)]
-        return Batch(data.x[pair, coordinate], data.y[pair, coordinate], data.x[copy, coordinate],
-                     data.y[copy, coordinate], data.gain[coordinate] if structure.enkf_layer else None)
+        return Batch(data.x[pair, coordinate], data.y[pair, coordinate], data.layer_x[copy, coordinate],
+                     data.layer_y[copy, coordinate], data.gain[coordinate] if structure.enkf_layer else None)
 
     # No training while the filter has lost track: the local EnKF serves.
     training, trace, trend, lost = train(settings, structure, train_key, reset_key, state, prior, observation,
@@ -325,23 +389,28 @@ def _apply(numbers, key, state, particles, observation, model, structure):
 
 
 def local_ot_transport(numbers: LocalOTSettings, state: LocalOTState, particles: Array, observation: Array,
-                       *, structure: OTStructure) -> Array:
+                       model: StateSpaceModel | None = None, *, structure: OTStructure) -> Array:
+    if structure.deterministic_layer and model is None:
+        raise ValueError("the deterministic layer's transport needs the model: transport(state, particles, "
+                         "observation, model)")
     num, n = state.log_weights.shape[0], state.gain.shape[0]
     m = state.standardisation.y_mean.shape[0]
     if jnp.shape(particles) != (num, n) or jnp.shape(observation) != (m,):
         raise ValueError(f"particles must have shape ({num}, {n}) and observation ({m},), got "
                          f"{jnp.shape(particles)} and {jnp.shape(observation)}")
-    return _transport(numbers, state, particles, jnp.asarray(observation, particles.dtype), structure=structure)
+    return _transport(numbers, state, particles, jnp.asarray(observation, particles.dtype), model,
+                      structure=structure)
 
 
 @jax.jit(static_argnames=("structure",))
-def _transport(numbers, state, particles, observation, structure):
+def _transport(numbers, state, particles, observation, model, structure):
     _, transport_net = networks(structure)
     scaling = state.standardisation
     observed = jnp.isfinite(observation)
     active = active_mask(state.log_weights)
     data = _local_data(numbers, scaling.standardise_x(particles),
                        jnp.where(observed, scaling.standardise_y(state.simulated_observations), 0.0),
-                       jnp.where(observed, scaling.standardise_y(observation), 0.0), observed, active)
+                       jnp.where(observed, scaling.standardise_y(observation), 0.0), observed, active,
+                       _layer_inputs(structure, model, particles, scaling))
     params = state.training.params.transport
     return scaling.restore_x(_move(data, lambda x, y: transport_net.apply(params, x, y), structure.enkf_layer))

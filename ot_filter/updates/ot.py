@@ -43,7 +43,7 @@ and ``lib/`` (the fallback combinator).
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -65,8 +65,9 @@ from ot_filter.transport.networks import ACTIVATIONS, PotentialNetwork, Transpor
 from ot_filter.transport.saddle import (
     SaddleParams,
     TrainingState,
-    enkf_gain,
+    empty_layer,
     evaluate_saddle,
+    fit_layer,
     train_saddle,
     transport_input,
 )
@@ -133,13 +134,15 @@ class OTStructure(NamedTuple):
     restart: bool = True  # anchored: every update starts from the anchor (else only the first
     #                       and after a divergence; later ones are warm-started as ``ot()``'s)
     contextual: bool = False  # the networks also read the prior's context (``transport/context.py``)
+    deterministic_layer: bool = False  # the EnKF layer is ``saddle.DeterministicLayer`` (local_ot)
 
 
 class OTState(NamedTuple):
     log_weights: Array  # [N], uniform
     training: TrainingState  # network parameters and optimiser states (the warm start)
     standardisation: Standardisation  # of the last training data
-    gain: Array  # [n, m] EnKF-layer gain from all particles (standardised); zeros without it
+    gain: Any  # [n, m] EnKF-layer gain from all particles (standardised; zeros without it), or
+    #            its ``saddle.DeterministicLayer``
     simulated_observations: Array  # [N, m] Y^i ~ h(. | X^i) of the last update
     num_updates: Array  # int scalar: updates since the networks were (re-)initialised
     diverged: Array  # bool: the last training diverged; the networks were re-initialised
@@ -190,7 +193,7 @@ def ot(
     width: int = 32,
     num_blocks: int = 1,
     activation: str = "relu",
-    enkf_layer: bool = False,
+    enkf_layer: bool | str = False,
     potential_optimizer: optax.GradientTransformation | None = None,
     transport_optimizer: optax.GradientTransformation | None = None,
     warm_start: bool = True,
@@ -218,7 +221,9 @@ def ot(
       inner_steps: T optimiser steps per outer iteration.
       width, num_blocks, activation: the networks (both f and T); activation in
         ``transport.ACTIVATIONS``.
-      enkf_layer: precede T by the EnKF layer x + K (y - Y^i).
+      enkf_layer: precede T by the EnKF layer: True or ``"perturbed"``, x + K (y - Y^i);
+        ``"deterministic"``, m + K (y - mean Y) + A (x - m) with A the Gaussian OT map to the
+        Kalman posterior covariance (no observation-perturbation noise: ``transport/saddle.py``).
       potential_optimizer: an optax transformation for f replacing the default AdamW (then the
         two ``potential_*`` numbers are unused). It is given the negated gradient: f is maximised.
       transport_optimizer: an optax transformation for T replacing the default Adam.
@@ -281,6 +286,10 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
         first_iterations = floor_iterations = check_int("num_iterations", num_iterations)
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
+    layer = {False: None, True: "perturbed", "perturbed": "perturbed", "deterministic": "deterministic"}.get(
+        enkf_layer if isinstance(enkf_layer, (bool, str)) else None, "invalid")
+    if layer == "invalid":
+        raise ValueError(f"enkf_layer must be False, True (= 'perturbed') or 'deterministic', got {enkf_layer!r}")
     for name, optimizer in (("potential_optimizer", potential_optimizer),
                             ("transport_optimizer", transport_optimizer)):
         if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
@@ -306,13 +315,14 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
         width=check_int("width", width),
         num_blocks=check_int("num_blocks", num_blocks, minimum=0),
         activation=activation,
-        enkf_layer=bool(enkf_layer),
+        enkf_layer=layer is not None,
         warm_start=bool(warm_start),
         concavity_points=check_int("concavity_points", concavity_points, minimum=0),
         smoothing=smoothing,
         fresh_observations=bool(fresh_observations),
         potential_optimizer=potential_optimizer,
         transport_optimizer=transport_optimizer,
+        deterministic_layer=layer == "deterministic",
     )
     return settings, structure
 
@@ -388,7 +398,7 @@ def ot_init(settings: OTSettings, key: Array, particles: Array, model: StateSpac
         log_weights=uniform_log_weights(particles),
         training=starting_training(settings, structure, key, n, m, dtype),
         standardisation=identity_standardisation(n, m, dtype),
-        gain=jnp.zeros((n, m), dtype),
+        gain=empty_layer(n, m, dtype, structure.deterministic_layer),
         simulated_observations=jnp.zeros((num, m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
@@ -502,6 +512,12 @@ def _apply(settings, key, state, particles, observation, model, structure):
         scaling=scaling,
     )
 
+    # The layer from all particles (the perturbed layer's gain is re-estimated on each
+    # mini-batch in training; the deterministic layer's moments always come from here).
+    gain = (fit_layer(xs, ys, active, structure.deterministic_layer) if structure.enkf_layer
+            else empty_layer(n, ys.shape[1], particles.dtype))
+    batch_layer = gain if structure.deterministic_layer else None
+
     # 2. Saddle-point training (none while the filter has lost track).
     training, trace, trend, lost = train(
         settings, structure, train_key, reset_key, state, prior, observation,
@@ -509,13 +525,12 @@ def _apply(settings, key, state, particles, observation, model, structure):
             batch_key, data, sample_observation, batch_size=structure.batch_size,
             smoothing=structure.smoothing, fresh_observations=structure.fresh_observations,
             enkf_layer=structure.enkf_layer,
-        )._replace(context=context),
+        )._replace(context=context, gain=batch_layer),
         (n, ys.shape[1]),
     )
     params = training.params
 
     # 3. Transport the particles to the actual observation.
-    gain = enkf_gain(xs, ys, active) if structure.enkf_layer else jnp.zeros((n, ys.shape[1]), particles.dtype)
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
     moved = _transport_standardised(structure, params.transport, xs, y_standard, ys, gain, context)
 
