@@ -7,11 +7,13 @@ squared observations, on the same truths.
 Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the same seed):
 
 - ``enkf``, ``letkf``, ``sir``, ``local_ot``: the catalogue's (``runner.catalogue.lorenz96_update``);
-  ``local_ot`` is the localised OT filter with the deterministic layer, fresh networks at every
-  step (T starts as the layer) trained for 64 iterations.
-- ``letkf_step``: the LETKF with a step taper of the localised OT's window radius (the OT layer's
-  analysis exactly: ``tests/test_local_ot.py``).
-- ``layer``: the localised OT's deterministic layer alone (the network never used).
+  ``local_ot`` is the localised OT filter with the deterministic layer (the LETKF's Gaspari-Cohn
+  taper, windows out to its support: 29 observations), fresh networks at every step (T starts as
+  the layer) trained for 64 iterations.
+- ``layer``: that deterministic layer alone (the network never used): the LETKF itself
+  (``tests/test_local_ot.py``).
+- ``letkf_step``, ``layer_step``, ``local_ot_step``: the same three with a step taper of the
+  LETKF's radius (windows of 4 observations either side), the catalogue's choice before.
 - ``local_ot_warm``: the catalogue's windows and layer, with networks warm-started from step to
   step (the 256 -> 64 schedule), T's learning rate 1e-4 and a loss bound of 0.02 that restarts
   them when they drift.
@@ -40,23 +42,24 @@ import ot_filter as otf  # noqa: E402
 from ot_filter import metrics  # noqa: E402
 from ot_filter.experiments._common import simulate_truths, write_text_atomic  # noqa: E402
 from ot_filter.models import lorenz96  # noqa: E402
-from ot_filter.runner.catalogue import LORENZ96_LOCAL, cell_key, lorenz96_update  # noqa: E402
+from ot_filter.runner.catalogue import LORENZ96_LOCAL, cell_key, lorenz96_local_ot, lorenz96_update  # noqa: E402
 
-METHODS = ("enkf", "letkf", "letkf_step", "sir", "layer", "local_ot", "local_ot_warm", "local_ot_perturbed")
+METHODS = ("enkf", "letkf", "letkf_step", "sir", "layer", "layer_step", "local_ot", "local_ot_step", "local_ot_warm",
+           "local_ot_perturbed")
 
 
 def build(method: str, model):
     local = LORENZ96_LOCAL
-    windows = otf.local_windows(model.geometry, local["ot_radius"], local["ot_state_radius"])
+    radius = local["ot_taper_radius"]
     if method == "letkf_step":
-        return otf.letkf(otf.localisation(model.geometry, local["ot_radius"], taper="step"),
-                         inflation=local["inflation"])
-    if method == "layer":  # a loss bound no training meets: every step is the layer alone
-        return otf.local_ot(windows, num_iterations=1, enkf_layer="deterministic",
-                            inflation=local["inflation"], divergence_threshold=1e-12)
+        return otf.letkf(otf.localisation(model.geometry, radius, taper="step"), inflation=local["inflation"])
+    if method in ("layer", "layer_step"):  # a loss bound no training meets: every step is the layer alone
+        return lorenz96_local_ot(model, 1, taper="step" if method == "layer_step" else "gaspari_cohn",
+                                 divergence_threshold=1e-12)
+    if method == "local_ot_step":
+        return lorenz96_local_ot(model, local["ot_iterations"], taper="step", warm_start=False)
     if method == "local_ot_warm":
-        return otf.local_ot(windows, num_iterations=(256, 64), enkf_layer="deterministic", inflation=local["inflation"],
-                            divergence_threshold=0.02, transport_learning_rate=1e-4)
+        return lorenz96_local_ot(model, (256, 64), divergence_threshold=0.02, transport_learning_rate=1e-4)
     if method == "local_ot_perturbed":
         return otf.local_ot(otf.local_windows(model.geometry, 3.0, 1.0), num_iterations=(1024, 64),
                             enkf_layer=True, inflation=local["inflation"])

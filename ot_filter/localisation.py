@@ -264,12 +264,17 @@ class LocalWindows(NamedTuple):
       state_valid: ``[n, S]`` bool, False on padding.
       observations: ``[n, K]`` int, the observation components within ``radius``; padded with 0.
       observations_valid: ``[n, K]`` bool, False on padding.
+      observation_distances: ``[n, K]`` the observations' distances from the coordinate (``inf``
+        on padding): what a taper within the window reads.
+      radius: the windows' observation radius (a 0-d array).
     """
 
     state: Array
     state_valid: Array
     observations: Array
     observations_valid: Array
+    observation_distances: Array
+    radius: Array
 
 
 def local_windows(geometry: Geometry, radius: float, state_radius: float = 0.0) -> LocalWindows:
@@ -288,15 +293,16 @@ def local_windows(geometry: Geometry, radius: float, state_radius: float = 0.0) 
     with jax.ensure_compile_time_eval():
         state = np.asarray(geometry.state_positions, np.float64)
         observations = np.asarray(geometry.observation_positions, np.float64)
-        state_index, state_valid = _ordered_window(geometry, state, state, state_radius, self_first=True)
-        obs_index, obs_valid = _ordered_window(geometry, state, observations, radius, self_first=False)
-    return LocalWindows(jnp.asarray(state_index), jnp.asarray(state_valid),
-                        jnp.asarray(obs_index), jnp.asarray(obs_valid))
+        state_index, state_valid, _ = _ordered_window(geometry, state, state, state_radius, self_first=True)
+        obs_index, obs_valid, obs_distance = _ordered_window(geometry, state, observations, radius, self_first=False)
+    return LocalWindows(jnp.asarray(state_index), jnp.asarray(state_valid), jnp.asarray(obs_index),
+                        jnp.asarray(obs_valid), jnp.asarray(obs_distance), jnp.asarray(radius))
 
 
 def _ordered_window(geometry, centres, targets, cutoff, self_first, chunk: int = 512):
-    """``(indices [p, K], valid [p, K])`` of the targets within ``cutoff`` of each centre, in the
-    order of ``local_windows``; padding repeats the centre's own index (state) or 0."""
+    """``(indices [p, K], valid [p, K], distances [p, K])`` of the targets within ``cutoff`` of
+    each centre, in the order of ``local_windows``; padding repeats the centre's own index (state)
+    or 0, at distance inf."""
     compute = jax.jit(lambda a: distances(geometry, a, jnp.asarray(targets)))
     period = np.asarray(geometry.period, np.float64)
     rows = []
@@ -317,12 +323,15 @@ def _ordered_window(geometry, centres, targets, cutoff, self_first, chunk: int =
                 keys += [shift[:, axis] for axis in reversed(range(shift.shape[1]))]
             keys.append(found != centre if self_first else np.zeros(found.size, bool))
             keys.append(row[found])
-            rows.append(found[np.lexsort(keys)])
-    width = max(1, max(len(row) for row in rows))
+            order = np.lexsort(keys)
+            rows.append((found[order], row[found][order]))
+    width = max(1, max(len(row) for row, _ in rows))
     indices = np.zeros((len(rows), width), np.int32)
     valid = np.zeros((len(rows), width), bool)
-    for centre, row in enumerate(rows):
+    distance = np.full((len(rows), width), np.inf)
+    for centre, (row, gap) in enumerate(rows):
         indices[centre, :] = centre if self_first else 0
         indices[centre, :len(row)] = row
         valid[centre, :len(row)] = True
-    return indices, valid
+        distance[centre, :len(row)] = gap
+    return indices, valid, distance

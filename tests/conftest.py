@@ -1,8 +1,16 @@
 """Shared fixtures: random linear-Gaussian models (built in the caller's precision)."""
 
-import jax
-import numpy as np
-import pytest
+import os
+
+# Before NumPy or SciPy load OpenBLAS (this file is imported first): XLA calls LAPACK (SciPy's
+# OpenBLAS) from its own threads, and OpenBLAS's thread pool has crashed under concurrent callers
+# (scipy#21479, #24009); the matrices here are small, so one thread costs nothing. The notebook
+# kernels inherit it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 
 def random_linear_gaussian(seed: int, state_dim: int = 3, observation_dim: int = 2):

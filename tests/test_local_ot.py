@@ -13,11 +13,18 @@ import pytest
 
 import ot_filter as otf
 from ot_filter import metrics
-from ot_filter.localisation import local_windows, points, ring
+from ot_filter.localisation import local_windows, points, ring, taper_support
 from ot_filter.models import squared_observation
 from ot_filter.reference import squared_observation_posterior
 from ot_filter.transport.saddle import enkf_gain, transport_input
-from ot_filter.updates.local_ot import LocalOTSettings, _local_data, _move, local_ot, local_prior_quantiles
+from ot_filter.updates.local_ot import (
+    LocalOTSettings,
+    _layer_weights,
+    _local_data,
+    _move,
+    local_ot,
+    local_prior_quantiles,
+)
 
 
 def test_windows_match_brute_force_and_mean_the_same_offsets_on_a_ring():
@@ -64,7 +71,8 @@ def test_per_row_gains_equal_one_gain_per_row():
 
 
 def _numbers(windows, levels=0):
-    return LocalOTSettings(None, windows, (jnp.arange(levels) + 0.5) / max(levels, 1))
+    return LocalOTSettings(None, windows, (jnp.arange(levels) + 0.5) / max(levels, 1),
+                           _layer_weights(windows, "step"))
 
 
 def _ring_data(key, num, size, observed, radius, state_radius):
@@ -215,24 +223,32 @@ def test_local_ot_reaches_twice_the_floor_on_the_static_example_at_n_10():
     assert np.all(np.abs(np.mean(np.asarray(posterior) > 0, axis=0) - 0.5) < 0.1)  # both modes everywhere
 
 
-@pytest.mark.parametrize("state_radius", [0.0, 1.0])
-def test_the_deterministic_layer_is_the_letkf_with_hard_windows(x64, state_radius):
-    """The layer alone (the fallback) at the actual observation: the LETKF with a step taper of
-    the same radius and the same inflation, missing components included."""
+@pytest.mark.parametrize("state_radius, taper", [(0.0, "step"), (1.0, "step"), (0.0, "gaspari_cohn")])
+def test_the_deterministic_layer_is_the_letkf_of_the_windows(x64, state_radius, taper):
+    """The layer alone (the fallback) at the actual observation: the LETKF with the same taper
+    (a step of the windows' radius, or Gaspari-Cohn with that support) and inflation, missing
+    components included."""
     model = otf.models.lorenz96(dim=12, observed=np.arange(0, 12, 2))
     prior = 3.0 + 2.0 * jax.random.normal(jax.random.PRNGKey(0), (40, 12))
     observation = jax.vmap(model.observation_function)(prior[:1])[0] + 0.5
     observation = observation.at[2].set(jnp.nan)
-    radius = 2.5
+    radius = 2.5 if taper == "step" else 4.5
     update = local_ot(local_windows(model.geometry, radius, state_radius), num_iterations=20,
-                      enkf_layer="deterministic", inflation=1.1, divergence_threshold=1e-9)
+                      enkf_layer="deterministic", taper=taper, inflation=1.1, divergence_threshold=1e-9)
     state = update.init(jax.random.PRNGKey(1), prior, model)
     posterior, state, info = update.apply(jax.random.PRNGKey(2), state, prior, observation, model)
     assert bool(info.diverged)  # forced: the layer alone
-    letkf = otf.letkf(otf.localisation(model.geometry, radius, taper="step"), inflation=1.1)
+    length_scale = radius if taper == "step" else radius / taper_support(1.0, taper)
+    letkf = otf.letkf(otf.localisation(model.geometry, length_scale, taper=taper), inflation=1.1)
     expected, _, _ = letkf.apply(jax.random.PRNGKey(3), letkf.init(jax.random.PRNGKey(3), prior, model),
                                  prior, observation, model)
     np.testing.assert_allclose(posterior, expected, rtol=1e-8, atol=1e-8)
+    if taper == "gaspari_cohn":  # and differs from the step taper's
+        step = local_ot(local_windows(model.geometry, radius, state_radius), num_iterations=20,
+                        enkf_layer="deterministic", inflation=1.1, divergence_threshold=1e-9)
+        hard, _, _ = step.apply(jax.random.PRNGKey(2), step.init(jax.random.PRNGKey(1), prior, model), prior,
+                                observation, model)
+        assert float(jnp.max(jnp.abs(hard - posterior))) > 1e-2
 
 
 def test_the_deterministic_layer_needs_gaussian_observation_noise():
@@ -243,3 +259,7 @@ def test_the_deterministic_layer_needs_gaussian_observation_noise():
         update.apply(jax.random.PRNGKey(1), state, prior, jnp.ones(3), model._replace(observation_function=None))
     with pytest.raises(ValueError, match="enkf_layer must be"):
         local_ot(local_windows(model.geometry, 0.0), enkf_layer="square-root")
+    with pytest.raises(ValueError, match="taper must be one of"):
+        local_ot(local_windows(model.geometry, 0.0), enkf_layer="deterministic", taper="gauss")
+    with pytest.raises(ValueError, match="deterministic layer"):
+        local_ot(local_windows(model.geometry, 0.0), enkf_layer=True, taper="gaspari_cohn")

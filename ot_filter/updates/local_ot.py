@@ -43,8 +43,10 @@ Deterministic layer (``enkf_layer="deterministic"``, models with additive Gaussi
 window's local ETKF (``lib.transform``; the window's observations, unweighted) gives every prior
 particle q its deterministic analysis anomaly d_q and the mean gain K_i, and T's input for a copy
 q and an observation y is m_W + d_q + K_i (y_O - mean h(X)_O): at the actual observation the
-LETKF's analysis (hard windows), and for y drawn with an independent x the prior's first two
-moments, as the map's training needs. It has no perturbation noise, which is what held the
+LETKF's analysis (hard windows; with ``taper="gaspari_cohn"`` the observation error variances
+are divided by the Gaspari-Cohn taper whose support is the windows' radius: the tapered LETKF),
+and for y drawn with an independent x the prior's first two moments (approximately with a
+taper), as the map's training needs. It has no perturbation noise, which is what held the
 perturbed layer back on Lorenz-96 (``benchmarks/ot_lorenz96.py``). A state-space square root per
 window (``saddle.DeterministicLayer``, right for the global update) does not serve here: each
 coordinate's own transform mixes its neighbours' anomalies differently, the analysis loses the
@@ -71,7 +73,7 @@ from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_int, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
-from ot_filter.localisation import LocalWindows
+from ot_filter.localisation import TAPERS, LocalWindows, taper_support, taper_weights
 from ot_filter.model import StateSpaceModel
 from ot_filter.transport.divergence import diverged as divergence_test
 from ot_filter.transport.divergence import predictive_z as predictive_check
@@ -101,6 +103,7 @@ class LocalOTSettings(NamedTuple):
     ot: OTSettings
     windows: LocalWindows
     context_levels: Array  # [Q] quantile levels of the local prior given to the networks (Q may be 0)
+    layer_weights: Array  # [n, K] the deterministic layer's taper of each window slot (0 on padding)
 
 
 class LocalOTState(NamedTuple):
@@ -134,6 +137,7 @@ def local_ot(
     num_blocks: int = 1,
     activation: str = "relu",
     enkf_layer: bool | str = False,
+    taper: str = "step",
     potential_optimizer=None,
     transport_optimizer=None,
     warm_start: bool = True,
@@ -152,6 +156,11 @@ def local_ot(
         radius 0 for coordinates that are independent and observed one by one.
       enkf_layer: False, True (= ``"perturbed"``) or ``"deterministic"`` (module docstring; needs
         ``model.observation_function`` and ``observation_noise_cov``, whose diagonal it uses).
+      taper: how the deterministic layer weighs a window's observations: ``"step"`` (all alike:
+        the LETKF with a step taper of the windows' radius) or ``"gaspari_cohn"``, whose support
+        is the windows' radius (the LETKF with ``localisation(geometry, radius / 3.65)``, its
+        length scale): observation error variances divided by the taper, as the LETKF's
+        R-localisation does. T still reads every observation of the window.
       prior_context: Q > 0 gives the networks each window coordinate's prior quantiles at levels
         (k + 1/2) / Q (standardised, minus their mean over the coordinates): one shared map then
         serves coordinates whose priors differ in shape (a filter's coordinates after different
@@ -172,13 +181,25 @@ def local_ot(
         potential_learning_rate=potential_learning_rate,
         potential_weight_decay=potential_weight_decay, transport_learning_rate=transport_learning_rate,
     )
+    if taper not in TAPERS:
+        raise ValueError(f"taper must be one of {TAPERS}, got {taper!r}")
+    if taper != "step" and not structure.deterministic_layer:
+        raise ValueError("taper weighs the deterministic layer's observations: give enkf_layer='deterministic'")
     levels = (jnp.arange(check_int("prior_context", prior_context, minimum=0)) + 0.5) / max(prior_context, 1)
-    numbers = LocalOTSettings(settings, windows, levels)
+    numbers = LocalOTSettings(settings, windows, levels, _layer_weights(windows, taper))
     return LocalOTUpdate(
         init=bind(local_ot_init, numbers, structure=structure),
         apply=bind(local_ot_apply, numbers, structure=structure),
         transport=bind(local_ot_transport, numbers, structure=structure),
     )
+
+
+def _layer_weights(windows: LocalWindows, taper: str) -> Array:
+    """``[n, K]``: the taper of each window slot, its support the windows' radius."""
+    if taper == "step":
+        return windows.observations_valid.astype(float)
+    length_scale = windows.radius / taper_support(1.0, taper)
+    return taper_weights(windows.observation_distances, length_scale, taper) * windows.observations_valid
 
 
 def _sizes(windows: LocalWindows) -> tuple[int, int, int]:
@@ -265,19 +286,21 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     if layer is None:
         gain = jax.vmap(lambda xi, yi: enkf_gain(xi, yi, active), in_axes=(1, 1))(x, y)
         return _LocalData(x, y, local_y(y_standard), gain, x, y)
-    layer_x, layer_y, gain = _local_transforms(x, *layer, mask, windows.observations, active, y.shape[-1])
+    layer_x, layer_y, gain = _local_transforms(x, *layer, mask * numbers.layer_weights, windows.observations,
+                                               active, y.shape[-1])
     return _LocalData(x, y, local_y(y_standard), gain, layer_x, layer_y)
 
 
-def _local_transforms(x: Array, predicted: Array, noise_variance: Array, mask: Array, observations: Array,
+def _local_transforms(x: Array, predicted: Array, noise_variance: Array, weights: Array, observations: Array,
                       active: Array, conditioning: int):
     """The deterministic layer of every window: ``(m_W + d [N, n, S], mean h(X)_O [N, n, C],
     K [n, S, C])`` from the windows ``x[N, n, S]``, the predicted observations ``predicted[N, m]``,
-    their noise variances ``[m]`` and the slot ``mask[n, K]`` (all standardised)."""
+    their noise variances ``[m]`` and the slots' ``weights[n, K]`` (the taper; 0 on padding and
+    missing components: the noise variance divided by it, as in the LETKF), all standardised."""
     num_active = jnp.sum(active, dtype=jnp.int32)
     scale = 1.0 / jnp.sqrt(jnp.maximum(num_active - 1, 1).astype(x.dtype))
     predicted_mean, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)
-    inverse_sd = mask / jnp.sqrt(noise_variance[observations])  # [n, K]; 0 on padding, missing
+    inverse_sd = jnp.sqrt(weights / noise_variance[observations])  # [n, K]; 0 on padding, missing
 
     def one(x_window, slots, weight):
         mean, anomalies = masked_mean_and_anomalies(x_window, active, num_active)  # [S], [N, S]
