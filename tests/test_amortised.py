@@ -20,7 +20,10 @@ from ot_filter.amortised import (
     load_map,
     save_map,
     split_bank,
+    stack_banks,
     train_amortised,
+    train_amortised_seeds,
+    train_maps,
 )
 from ot_filter.progress import progress_listener
 from ot_filter.transport.saddle import enkf_gain
@@ -258,6 +261,46 @@ def test_a_map_for_another_model_is_refused(trained, tmp_path):
         load_map(tmp_path / "nothing")
     with pytest.raises(TypeError, match="AmortisedMap"):
         otf.amortised_ot(trained_map.params)
+
+
+@pytest.mark.long  # two compilations of the training programs (2 seeds and 1), about a minute
+def test_seeds_trained_together_are_the_maps_each_seed_trains_alone(x64):
+    # One vmapped program for both seeds; seed 1's map, curves and context scaling must be the
+    # ones train_amortised gives for its key alone (float64: the vmapped and the single
+    # program differ only in rounding), and the two seeds must differ (their own data and init).
+    options = dict(model_name="scalar-lg", num_simulations=6, num_steps=10, num_particles=100, rounds=1,
+                   num_iterations=200, chunks=2, width=8, batch_size=32, ensembles_per_batch=4)
+    keys = jax.random.split(jax.random.key(3), 2)
+    maps, histories = train_amortised_seeds(keys, scalar_model(), **options)
+    alone, alone_histories = train_amortised(keys[1], scalar_model(), **options)
+    assert len(maps) == 2 and len(histories) == 2 and len(histories[1]) == 1
+    assert maps[1].params.transport is not None and maps[0].info["seeds_trained_together"] == 2
+    leaves = lambda tree: jax.tree.leaves(tree)  # noqa: E731
+    for together, single in zip(leaves((maps[1].params, maps[1].context_scaling)),
+                                leaves((alone.params, alone.context_scaling))):
+        assert together.dtype == jnp.float64
+        np.testing.assert_allclose(together, single, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(histories[1][0].validation_loss, alone_histories[0].validation_loss, rtol=1e-10)
+    gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(leaves(maps[0].params), leaves(maps[1].params)))
+    assert gap > 1e-2
+    assert histories[0][0].validation_loss[-1] != histories[1][0].validation_loss[-1]
+
+
+def test_seed_batches_are_checked():
+    model = scalar_model()
+    analyses = jax.random.normal(jax.random.key(0), (2, 3, 20, 1))
+    bank = forecast_bank(jax.random.key(1), model, analyses)
+    with pytest.raises(ValueError, match="as many ensembles"):
+        stack_banks([bank, split_bank(bank, 0.5)[0]])
+    stacked = stack_banks([bank, bank])
+    assert stacked.particles.shape == (2, 6, 20, 1)
+    with pytest.raises(ValueError, match="keys must be a 1-D array"):
+        train_maps(jax.random.key(0), model, stacked, stacked, model_name="scalar-lg")
+    with pytest.raises(ValueError, match=r"banks must be stacked per seed \(\[3, E, N, n\]"):
+        train_maps(jax.random.split(jax.random.key(0), 3), model, stacked, stacked, model_name="scalar-lg")
+    with pytest.raises(ValueError, match="starts must hold one map per seed"):
+        train_maps(jax.random.split(jax.random.key(0), 2), model, stacked, stacked, model_name="scalar-lg",
+                   starts=[])
 
 
 def test_context_features_tell_a_two_mode_prior_from_a_gaussian_and_carry_the_scale():

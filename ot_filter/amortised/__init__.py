@@ -11,8 +11,11 @@ from ot_filter.amortised.training import (
     TrainingHistory,
     collect_forecasts,
     map_recipe,
+    stack_banks,
     train_amortised,
+    train_amortised_seeds,
     train_map,
+    train_maps,
 )
 
 __all__ = [
@@ -28,6 +31,9 @@ __all__ = [
     "map_recipe",
     "save_map",
     "split_bank",
+    "stack_banks",
     "train_amortised",
+    "train_amortised_seeds",
     "train_map",
+    "train_maps",
 ]

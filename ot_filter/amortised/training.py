@@ -9,6 +9,12 @@ after each. ``train_amortised`` does both in rounds: the first bank comes from a
 (so that the map is trained on the ensembles it will meet: a map trained only on EnKF forecasts
 sees ensembles online that it never saw). The result, ``AmortisedMap``, is what
 ``ot_filter.amortised_ot`` filters with and what ``storage.save_map`` writes.
+
+Seeds: ``train_maps`` and ``train_amortised_seeds`` train S maps at once, one per key, their
+training chunks and validations ``vmap``-ped over the seeds (one compiled program for all S);
+each seed has its own bank (its own simulated trajectories, and in later rounds its own map's
+forecasts), so that the spread over seeds is the whole offline procedure's. ``train_map`` and
+``train_amortised`` are the same code with one seed.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from ot_filter.updates.ot import OTSettings, OTStructure, init_training, network
 Array = jax.Array
 
 __all__ = ["AmortisedMap", "MapConfig", "TrainingHistory", "collect_forecasts", "map_recipe",
-           "train_amortised", "train_map"]
+           "stack_banks", "train_amortised", "train_amortised_seeds", "train_map", "train_maps"]
 
 
 class MapConfig(NamedTuple):
@@ -112,19 +118,48 @@ def _analyses(key, model, update, observations, num_particles):
 
 
 def train_map(key: Array, model: StateSpaceModel, bank: ForecastBank, validation: ForecastBank, *,
-              model_name: str, num_iterations: int = 20_000, batch_size: int = 256,
-              ensembles_per_batch: int = 8, width: int = 64, num_blocks: int = 1, activation: str = "relu",
-              enkf_layer: bool = False, inner_steps: int = 10, potential_learning_rate: float = 1e-4,
-              potential_weight_decay: float = 1.0, transport_learning_rate: float = 1e-3,
-              inflation: float = 1.0, context: bool = True, chunks: int = 20, validation_batches: int = 8,
-              start: AmortisedMap | None = None) -> tuple[AmortisedMap, TrainingHistory]:
-    """Trains a conditional map on the bank's ensembles: ``num_iterations`` outer iterations (one
-    f step, ``inner_steps`` T steps) in ``chunks`` compiled chunks, reporting progress to
-    ``ot_filter.progress`` listeners and the validation loss after each; from ``start``'s
-    parameters (and context scaling) if given (its networks must match). ``context``: the
-    networks also read each prior's context features, normalised by their statistics over the
-    training ensembles."""
-    n, m = bank.particles.shape[2], bank.scaling.y_mean.shape[1]
+              model_name: str, start: AmortisedMap | None = None, **options: Any) -> tuple[AmortisedMap, TrainingHistory]:
+    """Trains one conditional map on the bank's ensembles (``train_maps`` with one seed; the
+    options are its)."""
+    maps, histories = train_maps(key[None], model, stack_banks([bank]), stack_banks([validation]),
+                                 model_name=model_name, starts=None if start is None else [start], **options)
+    return maps[0], histories[0]
+
+
+def stack_banks(banks: list[ForecastBank]) -> ForecastBank:
+    """One bank per seed, stacked along a new leading axis (they must hold as many ensembles)."""
+    counts = {bank.num_ensembles for bank in banks}
+    if len(counts) != 1:
+        raise ValueError(f"the seeds' banks must hold as many ensembles, got {sorted(counts)}")
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *banks)
+
+
+def train_maps(keys: Array, model: StateSpaceModel, banks: ForecastBank, validations: ForecastBank, *,
+               model_name: str, num_iterations: int = 20_000, batch_size: int = 256,
+               ensembles_per_batch: int = 8, width: int = 64, num_blocks: int = 1, activation: str = "relu",
+               enkf_layer: bool = False, inner_steps: int = 10, potential_learning_rate: float = 1e-4,
+               potential_weight_decay: float = 1.0, transport_learning_rate: float = 1e-3,
+               inflation: float = 1.0, context: bool = True, chunks: int = 20, validation_batches: int = 8,
+               starts: list[AmortisedMap] | None = None) -> tuple[list[AmortisedMap], list[TrainingHistory]]:
+    """Trains S conditional maps at once, map s from ``keys[s]`` on ``banks``' s-th bank
+    (``stack_banks``; validation on ``validations``' s-th): ``num_iterations`` outer iterations
+    (one f step, ``inner_steps`` T steps) in ``chunks`` compiled chunks, each ``vmap``-ped over
+    the seeds, reporting progress to ``ot_filter.progress`` listeners and the validation loss
+    after each; from ``starts[s]``'s parameters (and context scaling) if given (its networks must
+    match). ``context``: the networks also read each prior's context features, normalised by
+    their statistics over the seed's training ensembles."""
+    if keys.ndim != 1:
+        raise ValueError(f"keys must be a 1-D array of PRNG keys (one per seed), got shape {keys.shape}")
+    num_seeds = keys.shape[0]
+    if banks.particles.ndim != 4 or banks.particles.shape[0] != num_seeds:
+        raise ValueError(f"banks must be stacked per seed ([{num_seeds}, E, N, n], stack_banks), got particles of "
+                         f"shape {banks.particles.shape}")
+    if validations.particles.ndim != 4 or validations.particles.shape[0] != num_seeds:
+        raise ValueError(f"validations must be stacked per seed ([{num_seeds}, E, N, n], stack_banks), got "
+                         f"particles of shape {validations.particles.shape}")
+    if starts is not None and len(starts) != num_seeds:
+        raise ValueError(f"starts must hold one map per seed ({num_seeds}), got {len(starts)}")
+    n, m = banks.particles.shape[3], banks.scaling.y_mean.shape[2]
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
     chunks = check_int("chunks", chunks)
@@ -142,38 +177,58 @@ def train_map(key: Array, model: StateSpaceModel, bank: ForecastBank, validation
         transport_learning_rate=float(check_number("transport_learning_rate", transport_learning_rate, 0.0, strict_minimum=True)),
         inflation=float(check_number("inflation", inflation, 1.0)), context=bool(context),
     )
-    context_scaling = fit_context_scaling(bank.context) if context else None
-    if start is not None and context:
-        context_scaling = start.context_scaling  # the networks learnt these inputs
-    settings, structure = map_recipe(config, context_scaling=context_scaling)
-    init_key, train_key, validation_key = jax.random.split(key, 3)
-    dtype = bank.particles.dtype
-    training = init_training(settings, structure, init_key, n, m, dtype)
-    if start is not None:
-        if _network_fields(start.config) != _network_fields(config):
-            raise ValueError("start's networks differ from the ones asked for: "
-                             f"{_network_fields(start.config)} vs {_network_fields(config)}")
-        potential_optimizer, transport_optimizer = optimizers(settings, structure)
-        training = TrainingState(start.params, potential_optimizer.init(start.params.potential),
-                                 transport_optimizer.init(start.params.transport))
+    if starts is not None:
+        for start in starts:
+            if _network_fields(start.config) != _network_fields(config):
+                raise ValueError("start's networks differ from the ones asked for: "
+                                 f"{_network_fields(start.config)} vs {_network_fields(config)}")
+    seed_keys = jax.vmap(lambda k: jax.random.split(k, 3))(keys)  # [S, 3]: init, train, validation
+    dtype = banks.particles.dtype
+    per_seed_settings, per_seed_training = [], []
+    for seed in range(num_seeds):
+        start = None if starts is None else starts[seed]
+        context_scaling = None
+        if context:  # the networks learnt a start's inputs: keep its scaling
+            context_scaling = (start.context_scaling if start is not None
+                               else fit_context_scaling(banks.context[seed]))
+        settings, structure = map_recipe(config, context_scaling=context_scaling)
+        if start is None:
+            training = init_training(settings, structure, seed_keys[seed, 0], n, m, dtype)
+        else:
+            potential_optimizer, transport_optimizer = optimizers(settings, structure)
+            training = TrainingState(start.params, potential_optimizer.init(start.params.potential),
+                                     transport_optimizer.init(start.params.transport))
+        per_seed_settings.append(settings)
+        per_seed_training.append(training)
+    stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(v) for v in leaves]), *trees)  # noqa: E731
+    settings, training = stack(per_seed_settings), stack(per_seed_training)
     per_chunk = num_iterations // chunks
     iterations, training_loss, validation_loss = [], [], []
     started = time.perf_counter()
     for chunk in range(chunks):
-        training, smoothed = _train_chunk(jax.random.fold_in(train_key, chunk), training, model, bank, settings,
-                                          structure, per_chunk, ensembles_per_batch)
-        value = _validate(validation_key, training.params, model, validation, settings, structure,
-                          ensembles_per_batch, validation_batches)
+        chunk_keys = jax.vmap(lambda k: jax.random.fold_in(k, chunk))(seed_keys[:, 1])
+        training, smoothed = _train_chunk(chunk_keys, training, model, banks, settings, structure, per_chunk,
+                                          ensembles_per_batch)
+        values = _validate(seed_keys[:, 2], training.params, model, validations, settings, structure,
+                           ensembles_per_batch, validation_batches)
         iterations.append((chunk + 1) * per_chunk)
-        training_loss.append(float(smoothed))
-        validation_loss.append(float(value))
+        training_loss.append(np.asarray(smoothed, float))
+        validation_loss.append(np.asarray(values, float))
         report(chunk + 1, chunks)
-    history = TrainingHistory(np.array(iterations), np.array(training_loss), np.array(validation_loss),
-                              time.perf_counter() - started)
-    info = {"iterations": int(iterations[-1]), "ensembles": int(bank.num_ensembles),
-            "validation_ensembles": int(validation.num_ensembles), "seconds": history.seconds,
-            "final_validation_loss": validation_loss[-1], "finite": bool(np.isfinite(validation_loss[-1]))}
-    return AmortisedMap(training.params, context_scaling, config, info), history
+    seconds = time.perf_counter() - started
+    training_loss, validation_loss = np.stack(training_loss, axis=1), np.stack(validation_loss, axis=1)  # [S, C]
+    maps, histories = [], []
+    for seed in range(num_seeds):
+        history = TrainingHistory(np.array(iterations), training_loss[seed], validation_loss[seed], seconds)
+        info = {"iterations": int(iterations[-1]), "ensembles": int(banks.particles.shape[1]),
+                "validation_ensembles": int(validations.particles.shape[1]), "seconds": seconds,
+                "seeds_trained_together": num_seeds,
+                "final_validation_loss": float(validation_loss[seed, -1]),
+                "finite": bool(np.isfinite(validation_loss[seed, -1]))}
+        params = jax.tree.map(lambda leaf: leaf[seed], training.params)
+        maps.append(AmortisedMap(params, per_seed_settings[seed].context_scaling, config, info))
+        histories.append(history)
+    return maps, histories
 
 
 def _network_fields(config: MapConfig):
@@ -182,7 +237,13 @@ def _network_fields(config: MapConfig):
 
 
 @partial(jax.jit, static_argnames=("structure", "num_iterations", "ensembles_per_batch"))
-def _train_chunk(key, training, model, bank, settings, structure, num_iterations, ensembles_per_batch):
+def _train_chunk(keys, training, model, banks, settings, structure, num_iterations, ensembles_per_batch):
+    """``num_iterations`` iterations of every seed (leading axis of all but model and structure)."""
+    return jax.vmap(lambda *args: _train_one(*args, model, structure, num_iterations, ensembles_per_batch))(
+        keys, training, banks, settings)
+
+
+def _train_one(key, training, bank, settings, model, structure, num_iterations, ensembles_per_batch):
     potential_net, transport_net = networks(structure)
     potential_optimizer, transport_optimizer = optimizers(settings, structure)
     training, trace = train_saddle(
@@ -198,9 +259,14 @@ def _train_chunk(key, training, model, bank, settings, structure, num_iterations
 
 
 @partial(jax.jit, static_argnames=("structure", "ensembles_per_batch", "num_batches"))
-def _validate(key, params, model, bank, settings, structure, ensembles_per_batch, num_batches):
-    """Mean J of fixed parameters on ``num_batches`` mini-batches of held-out ensembles (the same
-    batches at every call: the key is fixed)."""
+def _validate(keys, params, model, banks, settings, structure, ensembles_per_batch, num_batches):
+    """Every seed's mean J of fixed parameters on ``num_batches`` mini-batches of its held-out
+    ensembles (the same batches at every call: the keys are fixed)."""
+    return jax.vmap(lambda *args: _validate_one(*args, model, structure, ensembles_per_batch, num_batches))(
+        keys, params, banks, settings)
+
+
+def _validate_one(key, params, bank, settings, model, structure, ensembles_per_batch, num_batches):
     potential_net, transport_net = networks(structure)
 
     def one(batch_key):
@@ -223,26 +289,49 @@ def train_amortised(key: Array, model: StateSpaceModel, *, model_name: str, num_
     (default: the perturbed-observation EnKF), each later one, warm-started, on the forecasts of
     the amortised filter with the map so far (``num_iterations`` split evenly over the rounds).
     The last ``validation_fraction`` of the simulations are held out. ``options``: ``train_map``'s
-    network and optimiser settings."""
+    network and optimiser settings. Returns the map and one history per round."""
+    maps, histories = train_amortised_seeds(
+        key[None], model, model_name=model_name, num_simulations=num_simulations, num_steps=num_steps,
+        num_particles=num_particles, burn_in=burn_in, rounds=rounds, validation_fraction=validation_fraction,
+        num_iterations=num_iterations, first_update=first_update, **options)
+    return maps[0], histories[0]
+
+
+def train_amortised_seeds(keys: Array, model: StateSpaceModel, *, model_name: str, num_simulations: int,
+                          num_steps: int, num_particles: int, burn_in: int = 0, rounds: int = 2,
+                          validation_fraction: float = 0.2, num_iterations: int = 20_000, first_update=None,
+                          **options: Any) -> tuple[list[AmortisedMap], list[list[TrainingHistory]]]:
+    """``train_amortised`` for every key of ``keys`` ([S]) at once: seed s simulates its own
+    trajectories (and, after the first round, its own map's forecasts); the training chunks of
+    all seeds run as one ``vmap``-ped program (``train_maps``). Returns S maps and, per seed, one
+    history per round."""
     from ot_filter.updates.amortised import amortised_ot  # the update builder uses this module
     from ot_filter.updates.enkf import enkf
 
     rounds = check_int("rounds", rounds)
-    update = first_update if first_update is not None else enkf()
+    if keys.ndim != 1:
+        raise ValueError(f"keys must be a 1-D array of PRNG keys (one per seed), got shape {keys.shape}")
+    num_seeds = keys.shape[0]
+    updates = [first_update if first_update is not None else enkf()] * num_seeds
     trained, histories = None, []
     started = time.perf_counter()
     for index in range(rounds):
-        round_key = jax.random.fold_in(key, index)
-        collect_key, train_key = jax.random.split(round_key)
-        bank = collect_forecasts(collect_key, model, update, num_simulations=num_simulations, num_steps=num_steps,
-                                 num_particles=num_particles, burn_in=burn_in,
-                                 inflation=options.get("inflation", 1.0))
-        training_bank, validation = split_bank(bank, validation_fraction)
-        trained, history = train_map(train_key, model, training_bank, validation, model_name=model_name,
-                                     num_iterations=num_iterations // rounds, start=trained, **options)
-        histories.append(history)
-        update = amortised_ot(trained)
-    info = dict(trained.info, rounds=rounds, iterations=int(sum(h.iterations[-1] for h in histories)),
-                seconds=time.perf_counter() - started, simulations=num_simulations, steps=num_steps,
-                particles=num_particles, burn_in=burn_in)
-    return trained._replace(info=info), histories
+        round_keys = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, index)))(keys)  # [S, 2]
+        banks = [collect_forecasts(round_keys[seed, 0], model, updates[seed], num_simulations=num_simulations,
+                                   num_steps=num_steps, num_particles=num_particles, burn_in=burn_in,
+                                   inflation=options.get("inflation", 1.0)) for seed in range(num_seeds)]
+        splits = [split_bank(bank, validation_fraction) for bank in banks]
+        del banks
+        trained, round_histories = train_maps(
+            round_keys[:, 1], model, stack_banks([training for training, _ in splits]),
+            stack_banks([validation for _, validation in splits]), model_name=model_name,
+            num_iterations=num_iterations // rounds, starts=trained, **options)
+        histories.append(round_histories)
+        updates = [amortised_ot(one) for one in trained]
+    seconds = time.perf_counter() - started
+    maps = [one._replace(info=dict(one.info, rounds=rounds, iterations=int(sum(h[seed].iterations[-1]
+                                                                                for h in histories)),
+                                   seconds=seconds, simulations=num_simulations, steps=num_steps,
+                                   particles=num_particles, burn_in=burn_in))
+            for seed, one in enumerate(trained)]
+    return maps, [[round_histories[seed] for round_histories in histories] for seed in range(num_seeds)]
