@@ -131,7 +131,13 @@ def stack_banks(banks: list[ForecastBank]) -> ForecastBank:
     counts = {bank.num_ensembles for bank in banks}
     if len(counts) != 1:
         raise ValueError(f"the seeds' banks must hold as many ensembles, got {sorted(counts)}")
-    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *banks)
+    return _stack(banks)
+
+
+def _stack(trees: list) -> Any:
+    """Pytrees of one structure, their leaves (arrays or Python numbers) stacked along a new
+    leading axis."""
+    return jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(leaf) for leaf in leaves]), *trees)
 
 
 def train_maps(keys: Array, model: StateSpaceModel, banks: ForecastBank, validations: ForecastBank, *,
@@ -200,8 +206,7 @@ def train_maps(keys: Array, model: StateSpaceModel, banks: ForecastBank, validat
                                      transport_optimizer.init(start.params.transport))
         per_seed_settings.append(settings)
         per_seed_training.append(training)
-    stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(v) for v in leaves]), *trees)  # noqa: E731
-    settings, training = stack(per_seed_settings), stack(per_seed_training)
+    settings, training = _stack(per_seed_settings), _stack(per_seed_training)
     per_chunk = num_iterations // chunks
     iterations, training_loss, validation_loss = [], [], []
     started = time.perf_counter()
