@@ -1,6 +1,8 @@
-"""Shared fixtures: random linear-Gaussian models (built in the caller's precision)."""
+"""Shared fixtures: random linear-Gaussian models (built in the caller's precision), the dense
+reference of the OT update's EnKF fallback."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -31,6 +33,21 @@ def random_linear_gaussian(seed: int, state_dim: int = 3, observation_dim: int =
     D = rng.normal(size=(state_dim, state_dim))
     P0 = D @ D.T / state_dim + 0.1 * np.eye(state_dim)
     return (A, Q, H, R, m0, P0)
+
+
+def perturbed_enkf_reference(particles, simulated, observation, scaling):
+    """Dense float64 reference of the OT update's fallback: X^i + K (y - Y^i) with the update's
+    own simulated observations Y^i, K = Cov(X, Y) (Cov(Y) + r I)^-1 from the standardised pairs
+    (divisor N - 1) and the relative ridge r = 1e-4 (1 + tr Cov(Y) / m)."""
+    xs = np.asarray(scaling.standardise_x(particles), np.float64)
+    ys = np.asarray(scaling.standardise_y(simulated), np.float64)
+    y = np.asarray(scaling.standardise_y(observation), np.float64)
+    xa, ya = xs - xs.mean(axis=0), ys - ys.mean(axis=0)
+    cross, cov_y = xa.T @ ya / (len(xs) - 1), ya.T @ ya / (len(xs) - 1)
+    cov_y = cov_y + 1e-4 * (1 + np.trace(cov_y) / cov_y.shape[0]) * np.eye(cov_y.shape[0])
+    moved = xs + (y - ys) @ np.linalg.solve(cov_y, cross.T)
+    return np.asarray(scaling.restore_x(jnp.asarray(moved, jnp.float32)))
+
 
 
 @pytest.fixture

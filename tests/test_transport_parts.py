@@ -57,6 +57,23 @@ def test_batches_draw_active_particles_only():
     np.testing.assert_allclose(batch.y, batch.x, atol=1e-6)  # y = x pairs kept together
 
 
+def test_own_pairs_are_the_first_active_pairs_with_the_next_as_copies():
+    x = jnp.asarray(_ensemble(num=10))
+    y = 2.0 * x + 1.0  # a pair's y tells its x
+    active = jnp.asarray([False, True, True, False, True, True, True, False, True, True])
+    index = jnp.argsort(~active, stable=True)
+    data = batches.TrainingData(x, y, index, jnp.sum(active), jnp.asarray(0.5), None, None)
+    rows = np.flatnonzero(np.asarray(active))  # the 7 active rows, in order
+    batch = batches.own_pairs(data, 5)  # fewer than the active rows: the first 5, copies shifted
+    np.testing.assert_array_equal(batch.x, x[rows[:5]])
+    np.testing.assert_array_equal(batch.y, y[rows[:5]])
+    np.testing.assert_array_equal(batch.xbar, x[rows[[1, 2, 3, 4, 0]]])
+    np.testing.assert_array_equal(batch.ybar, y[rows[[1, 2, 3, 4, 0]]])
+    batch = batches.own_pairs(data, 9)  # more than the active rows: they repeat, no inactive one
+    np.testing.assert_array_equal(batch.x, x[rows[np.arange(9) % 7]])
+    np.testing.assert_array_equal(batch.xbar, x[rows[(np.arange(9) + 1) % 7]])
+
+
 def test_predictive_z_and_each_divergence_condition():
     x = jnp.asarray(_ensemble(num=50))
     active = jnp.ones(50, bool)

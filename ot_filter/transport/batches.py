@@ -11,13 +11,14 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 from ot_filter.transport.saddle import Batch
 from ot_filter.transport.standardisation import Standardisation, smoothed_draw
 
 Array = jax.Array
 
-__all__ = ["TrainingData", "sample_batch", "simulate_standardised"]
+__all__ = ["TrainingData", "own_pairs", "sample_batch", "simulate_standardised"]
 
 
 class TrainingData(NamedTuple):
@@ -59,3 +60,14 @@ def sample_batch(key: Array, data: TrainingData, sample_observation: Callable, *
     else:
         y, ybar = data.ys[pairs], data.ys[copies]
     return Batch(x, y, xbar, ybar)
+
+
+def own_pairs(data: TrainingData, batch_size: int) -> Batch:
+    """The first ``batch_size`` active pairs with their own simulated observations, and as
+    copies the same pairs shifted by one (particles are exchangeable, so Xbar^i = X^(i+1) is
+    independent of the pair i): a mini-batch that draws nothing, for the J of a fixed map (a
+    check, not training; rows repeat when fewer particles are active)."""
+    count = jnp.maximum(jnp.minimum(batch_size, data.num_active), 1)
+    rows = jnp.arange(batch_size)
+    pairs, copies = data.active_index[rows % count], data.active_index[(rows + 1) % count]
+    return Batch(data.xs[pairs], data.ys[pairs], data.xs[copies], data.ys[copies])

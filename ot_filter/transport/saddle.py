@@ -55,6 +55,7 @@ __all__ = [
     "fit_layer",
     "evaluate_saddle",
     "saddle_objective",
+    "saddle_terms",
     "train_saddle",
 ]
 
@@ -189,12 +190,20 @@ def transport_cost(transport: Callable, batch: Batch, gain, cost_from_layer: boo
     return moved, 0.5 * jnp.sum((moved - origin) ** 2, axis=-1)
 
 
-def saddle_objective(potential: Callable, transport: Callable, batch: Batch, gain=None,
-                     cost_from_layer: bool = False) -> Array:
-    """J(f, T) on a mini-batch; ``potential(x, y) -> [B]``, ``transport(x, y) -> [B, n]``."""
+def saddle_terms(potential: Callable, transport: Callable, batch: Batch, gain=None,
+                 cost_from_layer: bool = False) -> tuple[Array, Array]:
+    """J's two terms per row of a mini-batch: ``(f(x, y), c(xbar, T) - f(T(xbar, y), y))``,
+    each ``[B]``; ``potential(x, y) -> [B]``, ``transport(x, y) -> [B, n]``."""
     moved, cost = transport_cost(transport, batch, gain, cost_from_layer)
     y = conditioning(batch.y, batch.context)
-    return jnp.mean(potential(batch.x, y)) + jnp.mean(cost - potential(moved, y))
+    return potential(batch.x, y), cost - potential(moved, y)
+
+
+def saddle_objective(potential: Callable, transport: Callable, batch: Batch, gain=None,
+                     cost_from_layer: bool = False) -> Array:
+    """J(f, T) on a mini-batch (the means of ``saddle_terms``)."""
+    joint, independent = saddle_terms(potential, transport, batch, gain, cost_from_layer)
+    return jnp.mean(joint) + jnp.mean(independent)
 
 
 def batch_gain(batch: Batch, enkf_layer: bool) -> Array | None:

@@ -6,7 +6,8 @@ standardises the forecast ensemble, simulates its observations and moves the par
 offline map, T(x, y) in that ensemble's standardised coordinates.
 
 - ``num_iterations=0`` (the default): no training online, one forward pass per step; the map's J
-  on one mini-batch of the current prior stands in for the training loss in the divergence test.
+  on the first ``CHECK_ROWS`` pairs of the current prior and their own simulated observations
+  (nothing drawn for it) stands in for the training loss in the divergence test.
 - ``num_iterations=k > 0`` (or a halving schedule ``(first, floor)``): k outer iterations per
   step, the first step's from the offline map, later ones warm-started from the step before
   (``restart=True``: every step from the offline map again, with fresh optimiser states).

@@ -16,9 +16,11 @@ Diagnostics (``OTInfo``): the loss curve, a divergence test and the c-concavity 
 Divergence (``transport/divergence.py``: a non-finite or exploding loss, non-finite or
 over-spread transported particles, an implausible observation under the transported ensemble,
 or a filter that has lost track, seen in the trend of its innovations over updates) is reported
-in ``info.diverged``. That step then falls back to the perturbed-observation EnKF update
-(``ot_filter.enkf()``) and the networks are re-initialised with the iteration schedule restarted,
-so that a filter never carries garbage forward.
+in ``info.diverged``. That step then falls back to the perturbed-observation EnKF update made
+with the step's own simulated observations (``ot_filter.enkf()`` but for the draws: no second
+simulation) and the networks are re-initialised with the iteration schedule restarted, so that
+a filter never carries garbage forward. The predictive test, and the J of a map used without
+training, read the first ``CHECK_ROWS`` active particles (``transport/divergence.py``).
 
 Small particle counts: trained on the N pairs alone, the networks resolve individual pairs and
 the map learns the posterior of an under-smoothed prior (at N = 100 the mode masses of the static
@@ -50,24 +52,28 @@ import jax.numpy as jnp
 import optax
 
 from ot_filter.lib.fallback import use_where
-from ot_filter.lib.ensemble import inflate, masked_mean_and_std
+from ot_filter.lib.ensemble import inflate
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
 from ot_filter.model import StateSpaceModel
-from ot_filter.transport.batches import TrainingData, sample_batch
+from ot_filter.transport.batches import TrainingData, own_pairs, sample_batch
 from ot_filter.transport.context import ContextScaling, conditioning, context_features, context_size
 from ot_filter.transport.diagnostics import c_concavity_min_eigenvalue
 from ot_filter.transport.divergence import diverged as divergence_test
 from ot_filter.transport.divergence import innovation_trend, lost_track
+from ot_filter.transport.divergence import CHECK_ROWS
 from ot_filter.transport.divergence import predictive_z as predictive_check
 from ot_filter.transport.networks import ACTIVATIONS, PotentialNetwork, TransportNetwork
 from ot_filter.transport.saddle import (
     SaddleParams,
     TrainingState,
+    TrainingTrace,
+    batch_gain,
     empty_layer,
-    evaluate_saddle,
+    enkf_gain,
     fit_layer,
+    saddle_terms,
     train_saddle,
     transport_input,
 )
@@ -79,8 +85,6 @@ from ot_filter.transport.standardisation import (
     smoothing_bandwidth,
     standardisation,
 )
-from ot_filter.updates.enkf import EnKFSettings, enkf_apply
-from ot_filter.updates.base import UniformWeightsState
 
 Array = jax.Array
 
@@ -157,8 +161,8 @@ class OTInfo(NamedTuple):
     min_hessian_eigenvalue: Array  # smallest eigenvalue of Hess_x(0.5|x|^2 - f) at checked pairs
     #                                (standardised coordinates; +inf when the check is off)
     concavity_violation: Array  # fraction of checked pairs where that eigenvalue is < 0 (0 if off)
-    potential_spread: Array  # std of f(X^i, Y^i) over (at most) one mini-batch of the active
-    #                          particles: its growth is the first sign of divergence
+    potential_spread: Array  # std of f(X^i, Y^i) over the first CHECK_ROWS active particles:
+    #                          its growth is the first sign of divergence
     predictive_z: Array  # max over coordinates of |y - mean Y'| / std Y', Y' simulated at the
     #                      transported particles (0 for a missing observation)
     innovation_trend: Array  # moving average over updates of the normalised prior innovation;
@@ -461,15 +465,20 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
     """Saddle-point training, warm-started from ``state.training`` (unless ``warm_start=False``)
     and budgeted by the halving schedule; none while the filter has lost track (the trend of its
     innovations, ``transport/divergence.py``: the EnKF serves until it comes down).
-    ``sizes``: the networks' (x, y) input widths. Returns ``(training, trace, trend, lost)``."""
+    ``sizes``: the networks' (x, y) input widths. Returns ``(training, trace, trend, lost)``.
+    With no iterations at all (an offline map used as is) nothing is trained or restarted, and
+    the trace is empty: the caller fills in the map's J on this prior."""
     trend = innovation_trend(state.innovation_trend, prior.simulated, observation, prior.active)
     lost = lost_track(trend, settings.trend_threshold, jnp.sum(jnp.isfinite(observation)))
+    if structure.first_iterations == 0:
+        dtype = prior.xs.dtype
+        return state.training, TrainingTrace(jnp.zeros((0,), dtype), jnp.zeros((), dtype), jnp.array(True)), trend, lost
+    potential_net, transport_net = networks(structure)
     budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
                                                  structure.floor_iterations))
     training = state.training
     if (structure.anchored and structure.restart) or not structure.warm_start:
         training = starting_training(settings, structure, reset_key, *sizes, prior.xs.dtype)
-    potential_net, transport_net = networks(structure)
     potential_optimizer, transport_optimizer = optimizers(settings, structure)
     training, trace = train_saddle(
         train_key, training, sample_batch, budget,
@@ -478,21 +487,14 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
         inner_steps=structure.inner_steps, enkf_layer=structure.enkf_layer,
         record_length=structure.first_iterations, cost_from_layer=cost_from_layer,
     )
-    if structure.first_iterations == 0:
-        # An offline map used as is: its J on one fresh mini-batch of this prior stands in for
-        # the (empty) trace, so that the loss test of the divergence check still sees the map.
-        value = evaluate_saddle(jax.random.fold_in(train_key, 1), training.params, sample_batch,
-                                potential_net=potential_net, transport_net=transport_net,
-                                enkf_layer=structure.enkf_layer, cost_from_layer=cost_from_layer)
-        trace = trace._replace(smoothed_loss=value, finite=trace.finite & jnp.isfinite(value))
     return training, trace, trend, lost
 
 
 @jax.jit(static_argnames=("structure",))
 def _apply(settings, key, state, particles, observation, model, structure):
     """The recipe: simulate, standardise, train, transport, check, fall back."""
-    num, n = particles.shape
-    simulate_key, train_key, fallback_key, reset_key = jax.random.split(key, 4)
+    n = particles.shape[1]
+    simulate_key, train_key, _, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
 
     # 1. Training data: Y^i ~ h(. | X^i), both standardised over the active (unpadded) particles.
@@ -531,33 +533,46 @@ def _apply(settings, key, state, particles, observation, model, structure):
     )
     params = training.params
 
+    # The map's J terms on the prior's own first pairs (``own_pairs``: nothing drawn). f(x, y)
+    # gives the potential's spread (a diagnostic); without training, J stands in for the empty
+    # trace so that the loss test of the divergence check still sees the map. (What is not used
+    # compiles away.)
+    check = own_pairs(data, CHECK_ROWS)._replace(context=context, gain=batch_layer)
+    joint, independent = saddle_terms(
+        lambda x, y: potential_net.apply(params.potential, x, y),
+        lambda x, y: transport_net.apply(params.transport, x, y),
+        check, batch_gain(check, structure.enkf_layer),
+    )
+    if structure.first_iterations == 0:
+        value = jnp.mean(joint) + jnp.mean(independent)
+        trace = trace._replace(smoothed_loss=value, finite=jnp.isfinite(value))
+
     # 3. Transport the particles to the actual observation.
     y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
     moved = _transport_standardised(structure, params.transport, xs, y_standard, ys, gain, context)
 
     # 4. Checks: divergence (loss, spread, posterior predictive) and c-concavity.
+    checked = data.active_index[:CHECK_ROWS]
     z = predictive_check(jax.random.fold_in(key, 4), model.sample_observation,
-                         scaling.restore_x(moved), observation, active)
+                         scaling.restore_x(moved[checked]), observation, active[checked])
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
                                       moved, active, z, xs)
     min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data, context)
 
-    # 5. Fall back to the EnKF where training diverged, and restart the networks there.
-    enkf_particles, _, _ = enkf_apply(
-        EnKFSettings(1.0), fallback_key, UniformWeightsState(state.log_weights), particles,
-        observation, model, perturbed=True, rotate=False,
-    )
+    # 5. Fall back where training diverged: the perturbed EnKF with this update's own simulated
+    #    observations (the layer's gain when there is one), as the localised update does, and
+    #    restart the networks there.
+    fallback_gain = (gain if structure.enkf_layer and not structure.deterministic_layer
+                     else enkf_gain(xs, ys, active))
+    enkf_particles = scaling.restore_x(transport_input(xs, y_standard, ys, fallback_gain))
     posterior = use_where(~diverged, scaling.restore_x(moved), enkf_particles)
     # An observation with nothing finite carries no information: the particles stay
     # (run_filter skips such steps before getting here).
     posterior = jnp.where(jnp.any(observed), posterior, particles)
-    fresh = starting_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
-    training = use_where(diverged, fresh, training)
+    if structure.first_iterations:  # an offline map used as is has nothing to restart
+        fresh = starting_training(settings, structure, reset_key, n, ys.shape[1], particles.dtype)
+        training = use_where(diverged, fresh, training)
 
-    # The potential's spread from at most one mini-batch of active particles: a diagnostic, not
-    # worth a forward pass over all N (a fifth of an amortised update without training).
-    spread_rows = data.active_index[:min(structure.batch_size, num)]
-    potential_values = potential_net.apply(params.potential, xs[spread_rows], conditioning(ys[spread_rows], context))
     state = OTState(
         log_weights=state.log_weights,
         training=training,
@@ -575,8 +590,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
         diverged=diverged,
         min_hessian_eigenvalue=finite_or_inf(min_eigenvalue),
         concavity_violation=finite_or_inf(violation),
-        potential_spread=finite_or_inf(masked_mean_and_std(
-            potential_values[:, None], jnp.arange(spread_rows.shape[0]) < num_active)[1][0]),
+        potential_spread=finite_or_inf(jnp.std(joint)),
         predictive_z=finite_or_inf(z),
         innovation_trend=trend,
     )
