@@ -35,19 +35,23 @@ def random_linear_gaussian(seed: int, state_dim: int = 3, observation_dim: int =
     return (A, Q, H, R, m0, P0)
 
 
-def perturbed_enkf_reference(particles, simulated, observation, scaling):
+def perturbed_enkf_reference(particles, simulated, observation, scaling, active=None):
     """Dense float64 reference of the OT update's fallback: X^i + K (y - Y^i) with the update's
     own simulated observations Y^i, K = Cov(X, Y) (Cov(Y) + r I)^-1 from the standardised pairs
-    (divisor N - 1) and the relative ridge r = 1e-4 (1 + tr Cov(Y) / m)."""
+    of the active rows (divisor k - 1), the relative ridge r = 1e-4 (1 + tr Cov(Y) / m), and a
+    missing (NaN) component of y held at its standardised mean 0 in every pair; padding rows at
+    the active rows' posterior mean."""
+    active = np.ones(len(particles), bool) if active is None else np.asarray(active)
+    observed = np.isfinite(np.asarray(observation))
     xs = np.asarray(scaling.standardise_x(particles), np.float64)
-    ys = np.asarray(scaling.standardise_y(simulated), np.float64)
-    y = np.asarray(scaling.standardise_y(observation), np.float64)
-    xa, ya = xs - xs.mean(axis=0), ys - ys.mean(axis=0)
-    cross, cov_y = xa.T @ ya / (len(xs) - 1), ya.T @ ya / (len(xs) - 1)
+    ys = np.where(observed, np.asarray(scaling.standardise_y(simulated), np.float64), 0.0)
+    y = np.where(observed, np.asarray(scaling.standardise_y(observation), np.float64), 0.0)
+    xa, ya = xs[active] - xs[active].mean(axis=0), ys[active] - ys[active].mean(axis=0)
+    cross, cov_y = xa.T @ ya / (active.sum() - 1), ya.T @ ya / (active.sum() - 1)
     cov_y = cov_y + 1e-4 * (1 + np.trace(cov_y) / cov_y.shape[0]) * np.eye(cov_y.shape[0])
     moved = xs + (y - ys) @ np.linalg.solve(cov_y, cross.T)
+    moved = np.where(active[:, None], moved, moved[active].mean(axis=0))
     return np.asarray(scaling.restore_x(jnp.asarray(moved, jnp.float32)))
-
 
 
 @pytest.fixture

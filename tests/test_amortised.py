@@ -18,6 +18,7 @@ from ot_filter.amortised import (
     bank_batch,
     forecast_bank,
     load_map,
+    map_recipe,
     save_map,
     split_bank,
     stack_banks,
@@ -26,8 +27,9 @@ from ot_filter.amortised import (
     train_maps,
 )
 from ot_filter.progress import progress_listener
-from ot_filter.transport.saddle import enkf_gain
+from ot_filter.transport.divergence import CHECK_ROWS
 from ot_filter.transport.standardisation import Standardisation
+from ot_filter.updates.ot import networks
 
 # A stationary 1-D linear-Gaussian model: the Kalman filter is the exact reference.
 A, Q, R = 0.9, 0.3, 0.5
@@ -142,6 +144,31 @@ def test_the_amortised_filter_matches_the_kalman_filter_without_training_online(
     assert not np.any(np.asarray(result.info.diverged))
     assert np.all(np.isinf(np.asarray(result.info.loss))) or result.info.loss.shape[-1] == 0
     assert np.all(np.isfinite(np.asarray(result.info.final_loss)))
+
+
+@pytest.mark.long
+def test_without_training_the_loss_is_the_map_s_j_on_the_prior_s_first_pairs(trained):
+    # The loss test of a map used as is reads J on the first CHECK_ROWS pairs of the prior with
+    # their own simulated observations, the copies shifted by one row; the potential's spread
+    # is f's over the same pairs. Computed here from those rows directly.
+    trained_map, _, _ = trained
+    model, update = scalar_model(), otf.amortised_ot(trained_map)
+    particles = 0.5 + jax.random.normal(jax.random.key(3), (200, 1))
+    state = update.init(jax.random.key(4), particles, model)
+    _, after, info = update.apply(jax.random.key(5), state, particles, jnp.array([1.2]), model)
+    scaling = after.standardisation
+    xs = np.asarray(scaling.standardise_x(particles))[:CHECK_ROWS]
+    ys = np.asarray(scaling.standardise_y(after.simulated_observations))[:CHECK_ROWS]
+    copies = np.roll(np.arange(CHECK_ROWS), -1)
+    _, structure = map_recipe(trained_map.config)
+    potential_net, transport_net = networks(structure)
+    params = trained_map.params
+    f = lambda x, y: np.asarray(potential_net.apply(params.potential, jnp.asarray(x), jnp.asarray(y)))  # noqa: E731
+    moved = np.asarray(transport_net.apply(params.transport, jnp.asarray(xs[copies]), jnp.asarray(ys)))
+    joint = f(xs, ys)
+    expected = joint.mean() + np.mean(0.5 * np.sum((moved - xs[copies]) ** 2, axis=1) - f(moved, ys))
+    np.testing.assert_allclose(float(info.final_loss), expected, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(float(info.potential_spread), joint.std(), rtol=1e-4)
 
 
 @pytest.mark.long

@@ -11,6 +11,7 @@ import pytest
 
 import ot_filter as otf
 from ot_filter.experiments.dynamic_example import plot_dynamic_example, run_dynamic_example
+from ot_filter.lib.weights import uniform_log_weights
 
 from conftest import perturbed_enkf_reference
 
@@ -111,6 +112,23 @@ def test_an_ensemble_far_from_the_observation_is_caught_by_the_predictive_check(
     posterior, after, _ = frozen.apply(key, state, particles, jnp.array([50.0, 1.0]), DYNAMIC)
     expected = perturbed_enkf_reference(particles, after.simulated_observations, jnp.array([50.0, 1.0]),
                                         after.standardisation)
+    np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_the_fallback_reads_the_active_particles_and_the_observed_components_only():
+    # As above with 200 of 256 particles active (the padding far off) and the second component
+    # of y missing: the fallback's gain comes from the active pairs' observed component, the
+    # padding lands at the posterior mean.
+    frozen = otf.ot(num_iterations=5, potential_optimizer=optax.sgd(0.0),
+                    transport_optimizer=optax.sgd(0.0), prior_smoothing=0.0, concavity_points=0)
+    particles = jax.random.normal(jax.random.key(11), (256, 2)).at[200:].set(40.0)
+    active = np.arange(256) < 200
+    state = frozen.init(jax.random.key(12), particles, DYNAMIC)
+    state = state._replace(log_weights=uniform_log_weights(particles, 200))
+    y = jnp.array([50.0, jnp.nan])
+    posterior, after, info = frozen.apply(jax.random.key(13), state, particles, y, DYNAMIC)
+    assert bool(info.diverged) and float(info.predictive_z) > 10.0
+    expected = perturbed_enkf_reference(particles, after.simulated_observations, y, after.standardisation, active)
     np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
 
 

@@ -68,8 +68,8 @@ MAX_POSTERIOR_SPREAD = 10.0
 # The observation more than this many posterior-predictive standard deviations from the
 # posterior-predictive mean means a misplaced ensemble (a correct posterior gives a few at most).
 MAX_PREDICTIVE_Z = 10.0
-# Particles (the first active ones: particles are exchangeable) at which an update checks its
-# map's J and simulates the posterior predictive. Both tests have wide margins: z's sampling
+# Particles (the first active ones: particles are exchangeable) at which the global OT update
+# checks its map's J and simulates the posterior predictive. Both tests have wide margins: z's sampling
 # error is then about 0.13 + 9 % of z against a threshold of 10 that a correct posterior stays
 # far below, and J's about 0.2 against 10 n. More rows would cost a map used without training
 # (an amortised update) up to twice as much again (measured: 3.8 times the EnKF's step with 64

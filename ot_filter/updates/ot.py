@@ -16,9 +16,9 @@ Diagnostics (``OTInfo``): the loss curve, a divergence test and the c-concavity 
 Divergence (``transport/divergence.py``: a non-finite or exploding loss, non-finite or
 over-spread transported particles, an implausible observation under the transported ensemble,
 or a filter that has lost track, seen in the trend of its innovations over updates) is reported
-in ``info.diverged``. That step then falls back to the perturbed-observation EnKF update made
-with the step's own simulated observations (``ot_filter.enkf()`` but for the draws: no second
-simulation) and the networks are re-initialised with the iteration schedule restarted, so that
+in ``info.diverged``. That step then falls back to the stochastic (perturbed-observation) EnKF
+update made with the step's own simulated observations (no second simulation; the gain from
+their sample covariance) and the networks are re-initialised with the iteration schedule restarted, so that
 a filter never carries garbage forward. The predictive test, and the J of a map used without
 training, read the first ``CHECK_ROWS`` active particles (``transport/divergence.py``).
 
@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import optax
 
 from ot_filter.lib.fallback import use_where
-from ot_filter.lib.ensemble import inflate
+from ot_filter.lib.ensemble import inflate, masked_mean_and_anomalies
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number, is_traced
 from ot_filter.lib.weights import active_mask, uniform_log_weights
@@ -543,8 +543,9 @@ def _apply(settings, key, state, particles, observation, model, structure):
         lambda x, y: transport_net.apply(params.transport, x, y),
         check, batch_gain(check, structure.enkf_layer),
     )
+    counted = jnp.arange(CHECK_ROWS) < num_active  # own_pairs repeats rows when fewer are active
     if structure.first_iterations == 0:
-        value = jnp.mean(joint) + jnp.mean(independent)
+        value = jnp.mean(joint, where=counted) + jnp.mean(independent, where=counted)
         trace = trace._replace(smoothed_loss=value, finite=jnp.isfinite(value))
 
     # 3. Transport the particles to the actual observation.
@@ -559,12 +560,14 @@ def _apply(settings, key, state, particles, observation, model, structure):
                                       moved, active, z, xs)
     min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data, context)
 
-    # 5. Fall back where training diverged: the perturbed EnKF with this update's own simulated
-    #    observations (the layer's gain when there is one), as the localised update does, and
-    #    restart the networks there.
+    # 5. Fall back where training diverged: the stochastic EnKF with this update's own simulated
+    #    observations (the gain from their sample Cov(Y), the perturbed layer's when there is
+    #    one; padding at the posterior mean, as the EnKF leaves it), and restart the networks.
     fallback_gain = (gain if structure.enkf_layer and not structure.deterministic_layer
                      else enkf_gain(xs, ys, active))
     enkf_particles = scaling.restore_x(transport_input(xs, y_standard, ys, fallback_gain))
+    enkf_mean, _ = masked_mean_and_anomalies(enkf_particles, active, num_active)
+    enkf_particles = jnp.where(active[:, None], enkf_particles, enkf_mean)
     posterior = use_where(~diverged, scaling.restore_x(moved), enkf_particles)
     # An observation with nothing finite carries no information: the particles stay
     # (run_filter skips such steps before getting here).
@@ -590,7 +593,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
         diverged=diverged,
         min_hessian_eigenvalue=finite_or_inf(min_eigenvalue),
         concavity_violation=finite_or_inf(violation),
-        potential_spread=finite_or_inf(jnp.std(joint)),
+        potential_spread=finite_or_inf(jnp.std(joint, where=counted)),
         predictive_z=finite_or_inf(z),
         innovation_trend=trend,
     )
