@@ -1,4 +1,5 @@
-"""Amortised OT filtering: the forecast bank, offline training, the update, saving and loading.
+"""Amortised OT filtering: the forecast bank, offline training, the update, the choice among
+candidate maps, saving and loading.
 
 The tests on the map trained for the Kalman comparison (``trained``: 12,000 offline iterations,
 about a minute) are ``long``; the bank, batch and context tests are quick."""
@@ -20,6 +21,7 @@ from ot_filter.amortised import (
     load_map,
     map_recipe,
     save_map,
+    select_map,
     split_bank,
     stack_banks,
     train_amortised,
@@ -180,6 +182,43 @@ def test_an_unconditioned_map_fails_the_same_check(trained):
     monte_carlo = float(np.sqrt(np.mean(exact.cov[5:, 0, 0]) / 200))
     error = np.sqrt(np.mean((np.asarray(result.mean[5:, 0]) - np.asarray(exact.mean[5:, 0])) ** 2))
     assert error > 3 * monte_carlo
+
+
+@pytest.mark.long
+def test_the_selection_keeps_the_map_whose_filter_tracks_simulated_truths(trained):
+    # Both candidates filter the same 8 simulated truths (one compiled, vmapped program per map);
+    # the score is recomputed here truth by truth, unjitted: the MSE of the filter's mean to the
+    # truth after the first 5 steps.
+    trained_map, _, _ = trained
+    untrained = trained_map._replace(params=jax.tree.map(jnp.zeros_like, trained_map.params))
+    model, key = scalar_model(), jax.random.key(21)
+    chosen, scores = select_map(key, model, {"untrained": untrained, "trained": trained_map}, num_simulations=8,
+                                num_steps=30, num_particles=200, skip_steps=5)
+    assert chosen == "trained" and set(scores) == {"untrained", "trained"}
+    truth_key, filter_key = jax.random.split(key)
+    errors = []
+    for truth, filter_ in zip(jax.random.split(truth_key, 8), jax.random.split(filter_key, 8)):
+        states, observations = otf.simulate(truth, model, 30)
+        result = otf.run_filter(filter_, model, otf.amortised_ot(trained_map), observations, 200)
+        errors.append(np.mean((np.asarray(result.mean[5:]) - np.asarray(states[5:])) ** 2))
+    np.testing.assert_allclose(scores["trained"].per_simulation, errors, rtol=1e-4)
+    np.testing.assert_allclose(scores["trained"].mse, np.mean(errors), rtol=1e-4)
+    assert scores["trained"].stderr == pytest.approx(np.std(errors, ddof=1) / np.sqrt(8), rel=1e-3)
+    # Paired over the same truths, the unconditioned map is behind by more than 3 standard errors.
+    difference = scores["untrained"].per_simulation - scores["trained"].per_simulation
+    assert difference.mean() > 3 * difference.std(ddof=1) / np.sqrt(8), difference
+
+
+def test_the_selection_checks_its_candidates(contextual):
+    model = scalar_model()
+    options = dict(num_simulations=2, num_steps=4, num_particles=20)
+    with pytest.raises(ValueError, match="at least one map"):
+        select_map(jax.random.key(0), model, {}, **options)
+    other = contextual._replace(config=contextual.config._replace(model="another"))
+    with pytest.raises(ValueError, match="maps of one model"):
+        select_map(jax.random.key(0), model, {"a": contextual, "b": other}, **options)
+    with pytest.raises(ValueError, match="skip_steps must be in"):
+        select_map(jax.random.key(0), model, {"a": contextual}, skip_steps=4, **options)
 
 
 @pytest.mark.long

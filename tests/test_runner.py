@@ -152,6 +152,16 @@ def test_an_amortised_map_is_trained_once_stored_in_the_run_and_reused_by_a_late
     assert (stored / "map.json").exists() and (stored / "history.npz").exists()
     trained = load_map(stored, model="dynamic-n2", state_dim=2)
     assert trained.info["iterations"] == 60 and trained.info["rounds"] == 3
+    # Both candidates were trained and stored; the map kept is the one with the smaller MSE on
+    # the held-out truths, and the offline cost counts both.
+    selection = trained.info["selection"]
+    candidates = {label: load_map(stored / "candidates" / label) for label in ("plain", "enkf_layer")}
+    assert set(selection["scores"]) == set(candidates)
+    assert selection["chosen"] == min(selection["scores"], key=lambda label: selection["scores"][label]["mse"])
+    assert candidates["enkf_layer"].config.enkf_layer and not candidates["plain"].config.enkf_layer
+    for got, want in zip(jax.tree.leaves(trained.params), jax.tree.leaves(candidates[selection["chosen"]].params)):
+        np.testing.assert_array_equal(got, want)
+    assert selection["offline_seconds"] > sum(one.info["seconds"] for one in candidates.values())
     rows = {row["method"]: row for row in first.metrics["results"]}
     assert set(rows) == {"amortised", "amortised_warm"}
     for row in rows.values():

@@ -1,9 +1,11 @@
 """Amortised OT filtering: a conditional map trained offline on the forecast ensembles of long
-simulated trajectories (``training``, ``bank``), saved and loaded with its record (``storage``),
-and filtered with by ``ot_filter.amortised_ot`` (no training online, or a few warm-started
+simulated trajectories (``training``, ``bank``), chosen among candidates by how well its filter
+tracks simulated truths (``selection``), saved and loaded with its record (``storage``), and
+filtered with by ``ot_filter.amortised_ot`` (no training online, or a few warm-started
 iterations per step)."""
 
 from ot_filter.amortised.bank import ForecastBank, bank_batch, forecast_bank, split_bank
+from ot_filter.amortised.selection import MapScore, score_map, select_map
 from ot_filter.amortised.storage import MapMismatchError, load_map, save_map
 from ot_filter.amortised.training import (
     AmortisedMap,
@@ -23,6 +25,7 @@ __all__ = [
     "ForecastBank",
     "MapConfig",
     "MapMismatchError",
+    "MapScore",
     "TrainingHistory",
     "bank_batch",
     "collect_forecasts",
@@ -30,6 +33,8 @@ __all__ = [
     "load_map",
     "map_recipe",
     "save_map",
+    "score_map",
+    "select_map",
     "split_bank",
     "stack_banks",
     "train_amortised",
