@@ -35,20 +35,32 @@ def random_linear_gaussian(seed: int, state_dim: int = 3, observation_dim: int =
     return (A, Q, H, R, m0, P0)
 
 
-def perturbed_enkf_reference(particles, simulated, observation, scaling, active=None):
+def perturbed_enkf_reference(particles, simulated, observation, scaling, active=None, model=None):
     """Dense float64 reference of the OT update's fallback: X^i + K (y - Y^i) with the update's
-    own simulated observations Y^i, K = Cov(X, Y) (Cov(Y) + r I)^-1 from the standardised pairs
-    of the active rows (divisor k - 1), the relative ridge r = 1e-4 (1 + tr Cov(Y) / m), and a
-    missing (NaN) component of y held at its standardised mean 0 in every pair; padding rows at
-    the active rows' posterior mean."""
+    own simulated observations Y^i, from the standardised pairs of the active rows (divisor
+    k - 1), a missing (NaN) component of y held at its standardised mean 0 in every pair, padding
+    rows at the active rows' posterior mean. K = Cov(X, h) (Cov(h) + R)^-1 with the ``model``'s
+    h and R (standardised) when it has additive Gaussian noise; else (or without ``model``)
+    K = Cov(X, Y) (Cov(Y) + r I)^-1 with the relative ridge r = 1e-4 (1 + tr Cov(Y) / m)."""
     active = np.ones(len(particles), bool) if active is None else np.asarray(active)
     observed = np.isfinite(np.asarray(observation))
     xs = np.asarray(scaling.standardise_x(particles), np.float64)
     ys = np.where(observed, np.asarray(scaling.standardise_y(simulated), np.float64), 0.0)
     y = np.where(observed, np.asarray(scaling.standardise_y(observation), np.float64), 0.0)
-    xa, ya = xs[active] - xs[active].mean(axis=0), ys[active] - ys[active].mean(axis=0)
-    cross, cov_y = xa.T @ ya / (active.sum() - 1), ya.T @ ya / (active.sum() - 1)
-    cov_y = cov_y + 1e-4 * (1 + np.trace(cov_y) / cov_y.shape[0]) * np.eye(cov_y.shape[0])
+    y_scale = np.asarray(scaling.y_scale, np.float64)
+    xa = xs[active] - xs[active].mean(axis=0)
+    if model is not None and model.has_gaussian_observation_noise:
+        h = np.stack([np.asarray(model.observation_function(jnp.asarray(x)), np.float64) for x in np.asarray(particles)])
+        hs = np.where(observed, (h - np.asarray(scaling.y_mean, np.float64)) / y_scale, 0.0)
+        ha = hs[active] - hs[active].mean(axis=0)
+        noise = np.asarray(model.observation_noise_cov, np.float64)
+        noise = np.diag(noise) if noise.ndim == 1 else noise
+        noise = np.where(np.outer(observed, observed), noise / np.outer(y_scale, y_scale), np.eye(len(observed)))
+        cross, cov_y = xa.T @ ha / (active.sum() - 1), ha.T @ ha / (active.sum() - 1) + noise
+    else:
+        ya = ys[active] - ys[active].mean(axis=0)
+        cross, cov_y = xa.T @ ya / (active.sum() - 1), ya.T @ ya / (active.sum() - 1)
+        cov_y = cov_y + 1e-4 * (1 + np.trace(cov_y) / cov_y.shape[0]) * np.eye(cov_y.shape[0])
     moved = xs + (y - ys) @ np.linalg.solve(cov_y, cross.T)
     moved = np.where(active[:, None], moved, moved[active].mean(axis=0))
     return np.asarray(scaling.restore_x(jnp.asarray(moved, jnp.float32)))

@@ -93,7 +93,8 @@ def test_divergence_is_detected_and_falls_back_to_enkf(learning_rate):
     posterior, new_state, info = update.apply(key, state, particles, y, STATIC)
     assert bool(info.diverged)
     # The fallback is the perturbed EnKF with the update's own simulated observations.
-    expected = perturbed_enkf_reference(particles, new_state.simulated_observations, y, new_state.standardisation)
+    expected = perturbed_enkf_reference(particles, new_state.simulated_observations, y, new_state.standardisation,
+                                        model=STATIC)
     np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
     # The diverged networks are not carried forward.
     chex.assert_tree_all_finite(new_state.training)
@@ -380,7 +381,8 @@ def test_a_filter_that_lost_track_skips_training_and_uses_the_enkf_until_the_tre
     assert bool(info.diverged) and float(info.innovation_trend) > 10
     assert int(after.training.transport_opt_state[0].count) == 0  # nothing trained
     assert int(after.num_updates) == 0  # the next training gets the full first budget
-    expected = perturbed_enkf_reference(particles, after.simulated_observations, y, after.standardisation)
+    expected = perturbed_enkf_reference(particles, after.simulated_observations, y, after.standardisation,
+                                        model=model)
     np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
     _, healthy, healthy_info = update.apply(jax.random.key(2), state, particles, y, model)
     assert int(healthy.training.transport_opt_state[0].count) == 8 * 10  # floor of the schedule at update 3

@@ -111,24 +111,29 @@ def test_an_ensemble_far_from_the_observation_is_caught_by_the_predictive_check(
     # The fallback: the perturbed EnKF with the update's own simulated observations.
     posterior, after, _ = frozen.apply(key, state, particles, jnp.array([50.0, 1.0]), DYNAMIC)
     expected = perturbed_enkf_reference(particles, after.simulated_observations, jnp.array([50.0, 1.0]),
-                                        after.standardisation)
+                                        after.standardisation, model=DYNAMIC)
     np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
 
 
-def test_the_fallback_reads_the_active_particles_and_the_observed_components_only():
+@pytest.mark.parametrize("noise", ["known R", "simulator only"])
+def test_the_fallback_reads_the_active_particles_and_the_observed_components_only(noise):
     # As above with 200 of 256 particles active (the padding far off) and the second component
     # of y missing: the fallback's gain comes from the active pairs' observed component, the
-    # padding lands at the posterior mean.
+    # padding lands at the posterior mean. With R known the gain is Cov(X, h) (Cov(h) + R)^-1,
+    # for a model that only simulates its observations the simulated pairs' Cov(X, Y) Cov(Y)^-1.
+    model = DYNAMIC if noise == "known R" else DYNAMIC._replace(observation_noise_cov=None)
+    assert model.has_gaussian_observation_noise == (noise == "known R")
     frozen = otf.ot(num_iterations=5, potential_optimizer=optax.sgd(0.0),
                     transport_optimizer=optax.sgd(0.0), prior_smoothing=0.0, concavity_points=0)
     particles = jax.random.normal(jax.random.key(11), (256, 2)).at[200:].set(40.0)
     active = np.arange(256) < 200
-    state = frozen.init(jax.random.key(12), particles, DYNAMIC)
+    state = frozen.init(jax.random.key(12), particles, model)
     state = state._replace(log_weights=uniform_log_weights(particles, 200))
     y = jnp.array([50.0, jnp.nan])
-    posterior, after, info = frozen.apply(jax.random.key(13), state, particles, y, DYNAMIC)
+    posterior, after, info = frozen.apply(jax.random.key(13), state, particles, y, model)
     assert bool(info.diverged) and float(info.predictive_z) > 10.0
-    expected = perturbed_enkf_reference(particles, after.simulated_observations, y, after.standardisation, active)
+    expected = perturbed_enkf_reference(particles, after.simulated_observations, y, after.standardisation, active,
+                                        model=model)
     np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
 
 

@@ -17,12 +17,12 @@ from functools import partial
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ot_filter.amortised.training import AmortisedMap
 from ot_filter.filtering import run_filter
 from ot_filter.lib.validation import check_int
+from ot_filter.metrics import mse
 from ot_filter.model import StateSpaceModel, simulate
 
 Array = jax.Array
@@ -31,6 +31,8 @@ __all__ = ["MapScore", "score_map", "select_map"]
 
 
 class MapScore(NamedTuple):
+    """One candidate's score on the held-out truths (``score_map``)."""
+
     mse: float  # mean over the truths of the time-averaged squared error of the filter's mean
     stderr: float  # its standard error over the truths
     per_simulation: np.ndarray  # [S] each truth's time-averaged squared error (+inf: not finite)
@@ -40,7 +42,7 @@ class MapScore(NamedTuple):
     def record(self) -> dict:
         """JSON-ready (stored in the selected map's ``info``)."""
         return {"mse": self.mse, "stderr": self.stderr, "fallback_steps": self.fallback_steps,
-                "seconds": self.seconds}
+                "seconds": self.seconds, "per_simulation": self.per_simulation.tolist()}
 
 
 def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_simulations: int, num_steps: int,
@@ -54,16 +56,16 @@ def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_
     num_simulations = check_int("num_simulations", num_simulations, minimum=2)
     num_steps = check_int("num_steps", num_steps)
     num_particles = check_int("num_particles", num_particles, minimum=2)
-    if not 0 <= skip_steps < num_steps:
+    if check_int("skip_steps", skip_steps, minimum=0) >= num_steps:
         raise ValueError(f"skip_steps must be in [0, num_steps = {num_steps}), got {skip_steps}")
     started = time.perf_counter()
     errors, diverged = _squared_errors(key, model, amortised_ot(trained), num_simulations, num_steps, num_particles)
     errors, diverged = np.asarray(errors, float), np.asarray(diverged)
     per_simulation = errors[:, skip_steps:].mean(axis=1)
     per_simulation = np.where(np.isfinite(per_simulation), per_simulation, np.inf)
-    mse = float(per_simulation.mean())
-    stderr = float(per_simulation.std(ddof=1) / np.sqrt(num_simulations)) if np.isfinite(mse) else float("inf")
-    return MapScore(mse, stderr, per_simulation, int(diverged.sum()), time.perf_counter() - started)
+    mean_error = float(per_simulation.mean())
+    stderr = float(per_simulation.std(ddof=1) / np.sqrt(num_simulations)) if np.isfinite(mean_error) else float("inf")
+    return MapScore(mean_error, stderr, per_simulation, int(diverged.sum()), time.perf_counter() - started)
 
 
 @partial(jax.jit, static_argnums=(3, 4, 5))
@@ -73,8 +75,8 @@ def _squared_errors(key, model, update, num_simulations, num_steps, num_particle
 
     def one(truth, filter_):
         states, observations = simulate(truth, model, num_steps)
-        result = run_filter(filter_, model, update, observations, num_particles)
-        return jnp.mean((result.mean - states) ** 2, axis=-1), result.info.diverged
+        result = run_filter(filter_, model, update, observations, num_particles, save_every=0)
+        return mse(result.mean, states), result.info.diverged
 
     return jax.vmap(one)(jax.random.split(truth_key, num_simulations), jax.random.split(filter_key, num_simulations))
 
@@ -82,7 +84,8 @@ def _squared_errors(key, model, update, num_simulations, num_steps, num_particle
 def select_map(key: Array, model: StateSpaceModel, candidates: dict[str, AmortisedMap], *, num_simulations: int,
                num_steps: int, num_particles: int, skip_steps: int = 0) -> tuple[str, dict[str, MapScore]]:
     """The name of the candidate whose filter (a) has the smallest ``score_map`` MSE on the
-    same simulated truths, and every candidate's score. Candidates must be maps of one model."""
+    same simulated truths, and every candidate's score. Candidates must be maps of one model;
+    a ValueError when no candidate's filter is finite on every truth."""
     if not candidates:
         raise ValueError("candidates must hold at least one map")
     shapes = {(one.config.model, one.config.state_dim, one.config.observation_dim) for one in candidates.values()}
@@ -91,4 +94,6 @@ def select_map(key: Array, model: StateSpaceModel, candidates: dict[str, Amortis
     scores = {name: score_map(key, model, one, num_simulations=num_simulations, num_steps=num_steps,
                               num_particles=num_particles, skip_steps=skip_steps)
               for name, one in candidates.items()}
+    if not any(np.isfinite(score.mse) for score in scores.values()):
+        raise ValueError(f"no candidate's filter stayed finite on the held-out truths: {sorted(scores)}")
     return min(scores, key=lambda name: scores[name].mse), scores

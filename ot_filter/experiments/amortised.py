@@ -16,6 +16,7 @@ neither wins everywhere, and the validation J cannot tell which (see ``selection
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from typing import Sequence
@@ -24,7 +25,8 @@ import jax
 import numpy as np
 
 from ot_filter.amortised import AmortisedMap, TrainingHistory, load_map, save_map, select_map, train_amortised
-from ot_filter.experiments._common import save_figure
+from ot_filter.experiments._common import save_figure, write_text_atomic
+from ot_filter.lib.validation import check_int
 from ot_filter.updates.amortised import amortised_ot
 
 # The map: width 64 and mini-batches of 256 pairs from 8 ensembles (measured on the static
@@ -50,8 +52,10 @@ WARM_OPTIONS = {
     "lorenz63": {"num_iterations": (64, 16), "batch_size": 128, "inner_steps": 5},
 }
 # Offline candidates, each a full offline training (``OFFLINE``) with these options on top; the
-# map kept is the one whose filter (a) has the smallest MSE to held-out simulated truths (as many
-# simulations and steps as the offline bank, other truths). Measured on Lorenz-63 (10 truths,
+# map kept is the one whose filter (a) has the smallest MSE to held-out truths simulated from the
+# filter's model (the only model the offline stage knows: on Lorenz-63 the experiment's truths
+# are another), as many simulations and steps as the offline bank, the first tenth of the steps
+# skipped. Measured on Lorenz-63 (10 truths,
 # MSE after t = 1.5): x1 observed, plain 9.5, EnKF layer 1.68 (online OT 1.60); x1 and x3,
 # plain 0.97, layer 3.7 (online 0.73).
 CANDIDATES = {"plain": {}, "enkf_layer": {"enkf_layer": True}}
@@ -93,40 +97,66 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
             num_particles: int = 1000, candidates: dict | None = None,
             **overrides) -> tuple[AmortisedMap, list[TrainingHistory] | None]:
     """The map stored in ``directory`` if there is one (checked against the experiment), else
-    the best of the ``candidates`` (default ``CANDIDATES``), each trained into
-    ``directory/candidates/LABEL`` (or loaded from there: an interrupted selection resumes), kept
-    by ``select_map`` and stored in ``directory`` with the scores and the whole offline cost in
-    its ``info["selection"]``: a later run reuses it. Histories: the kept candidate's rounds
-    (None when it was loaded)."""
+    the best of the ``candidates`` (default ``CANDIDATES``; ``overrides`` apply to all of them
+    and may not set what a candidate sets), each trained into ``directory/candidates/LABEL`` (or
+    reloaded from there if trained with the same options: an interrupted offline stage resumes),
+    kept by ``select_map`` on held-out simulated truths of the filter's model and stored in
+    ``directory`` with the scores and the whole offline cost in its ``info["selection"]``: a
+    later run reuses it. Histories: the kept candidate's rounds (None when it was reloaded)."""
     name = map_name(experiment, dim, observed)
     model = experiment_model(experiment, dim, observed)
     state_dim = jax.eval_shape(model.sample_initial, key).shape[0]
     if os.path.exists(os.path.join(directory, "map.json")):
         return load_map(directory, model=name, state_dim=state_dim), None
     candidates = CANDIDATES if candidates is None else candidates
+    clash = sorted({option for options in candidates.values() for option in options} & set(overrides))
+    if clash:
+        raise ValueError(f"overrides {clash} are what the candidates {sorted(candidates)} differ by; pass "
+                         "candidates={...} instead")
+    offline = dict(OFFLINE[experiment], **overrides)
+    scoring = dict(num_simulations=check_int("num_simulations", offline["num_simulations"], minimum=2),
+                   num_steps=offline["num_steps"], num_particles=num_particles,
+                   skip_steps=offline["num_steps"] // 10)
     trained, histories = {}, {}
     for label, options in candidates.items():
-        where = os.path.join(directory, "candidates", label)
-        if os.path.exists(os.path.join(where, "map.json")):
-            trained[label], histories[label] = load_map(where, model=name, state_dim=state_dim), None
-            continue
-        trained[label], histories[label] = train_experiment_map(key, experiment, dim, observed, num_particles,
-                                                                **dict(overrides, **options))
-        save_map(where, trained[label])
-        np.savez(os.path.join(where, "history.npz"), **history_arrays(histories[label]))
-    offline = dict(OFFLINE[experiment], **overrides)
-    chosen, scores = select_map(jax.random.fold_in(key, SELECTION_FOLD), model, trained,
-                                num_simulations=offline["num_simulations"], num_steps=offline["num_steps"],
-                                num_particles=num_particles, skip_steps=offline["num_steps"] // 10)
+        trained[label], histories[label] = _candidate(os.path.join(directory, "candidates", label), key, experiment,
+                                                      dim, observed, num_particles, dict(overrides, **options))
+    chosen, scores = select_map(jax.random.fold_in(key, SELECTION_FOLD), model, trained, **scoring)
     selection = {"chosen": chosen, "scores": {label: score.record() for label, score in scores.items()},
                  "offline_seconds": sum(one.info["seconds"] for one in trained.values())
                  + sum(score.seconds for score in scores.values())}
     kept = trained[chosen]._replace(info=dict(trained[chosen].info, selection=selection))
     save_map(directory, kept)
-    history = os.path.join(directory, "candidates", chosen, "history.npz")
+    history, stored = (os.path.join(directory, "candidates", chosen, "history.npz"),
+                       os.path.join(directory, "history.npz"))
     if os.path.exists(history):
-        shutil.copyfile(history, os.path.join(directory, "history.npz"))
+        shutil.copyfile(history, stored)
+    elif os.path.exists(stored):  # an earlier map's curves
+        os.remove(stored)
     return kept, histories[chosen]
+
+
+def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: Sequence[int], num_particles: int,
+               options: dict) -> tuple[AmortisedMap, list[TrainingHistory] | None]:
+    """A candidate trained with ``options`` (``train_experiment_map``), stored in ``where`` with
+    those options (``options.json``); reloaded from there if it was trained with the same ones,
+    refused if with others (a stale map would be ranked against fresh ones)."""
+    record = json.loads(json.dumps(dict(OFFLINE[experiment], **MAP_OPTIONS, **options, num_particles=num_particles)))
+    if os.path.exists(os.path.join(where, "map.json")):
+        options_file = os.path.join(where, "options.json")
+        stored = None
+        if os.path.exists(options_file):
+            with open(options_file) as handle:
+                stored = json.load(handle)
+        if stored != record:
+            raise ValueError(f"the candidate map in {where} was trained with other options ({stored}, not "
+                             f"{record}): remove it to train it again")
+        return load_map(where, model=map_name(experiment, dim, observed)), None
+    trained, histories = train_experiment_map(key, experiment, dim, observed, num_particles, **options)
+    save_map(where, trained)
+    np.savez(os.path.join(where, "history.npz"), **history_arrays(histories))
+    write_text_atomic(os.path.join(where, "options.json"), json.dumps(record, indent=1, sort_keys=True))
+    return trained, histories
 
 
 def history_arrays(histories: list[TrainingHistory]) -> dict:

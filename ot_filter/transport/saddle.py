@@ -54,6 +54,7 @@ __all__ = [
     "enkf_gain",
     "fit_layer",
     "evaluate_saddle",
+    "known_noise_gain",
     "saddle_objective",
     "saddle_terms",
     "train_saddle",
@@ -133,6 +134,16 @@ def enkf_gain(x: Array, y: Array, active: Array | None = None) -> Array:
     (only the rows where ``active[B]`` is True, if given: a padded particle axis)."""
     _, _, _, cross, cov_y = _moments(x, y, active)
     gain, _ = cholesky_gain(cross, _ridged(cov_y))
+    return gain
+
+
+def known_noise_gain(x: Array, predicted: Array, noise_cov: Array, active: Array | None = None) -> Array:
+    """``K[n, m] = Cov(X, h(X)) (Cov(h(X)) + R)^{-1}``, the EnKF's gain when the observation
+    noise's covariance ``R[m, m]`` is known, from ``x[B, n]`` and the noise-free predictions
+    ``predicted[B, m]`` (the ``active`` rows), all in one set of coordinates. Cov(h) + R is
+    positive definite: no ridge, and well conditioned where the sample Cov(Y) is not (N near m)."""
+    _, _, _, cross, cov_h = _moments(x, predicted, active)
+    gain, _ = cholesky_gain(cross, cov_h + noise_cov)
     return gain
 
 
