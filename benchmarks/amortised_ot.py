@@ -159,8 +159,10 @@ def main():
     stored = {}
     for name in sorted(os.listdir(os.path.join(args.out, "maps"))):
         history = os.path.join(args.out, "maps", name, "history.npz")
-        if os.path.exists(history):
-            chosen = json.load(open(os.path.join(args.out, "maps", name, "map.json")))["info"].get("selection", {})
+        record = os.path.join(args.out, "maps", name, "map.json")
+        if os.path.exists(history) and os.path.exists(record):
+            with open(record) as handle:
+                chosen = json.load(handle)["info"].get("selection", {})
             stored[f"{name} (kept: {chosen['chosen']})" if chosen else name] = dict(np.load(history))
     if stored:
         plot_validation(stored, args.out)

@@ -205,6 +205,7 @@ def test_the_selection_keeps_the_map_whose_filter_tracks_simulated_truths(traine
     np.testing.assert_allclose(scores["trained"].mse, np.mean(errors), rtol=1e-4)
     assert scores["trained"].stderr == pytest.approx(np.std(errors, ddof=1) / np.sqrt(8), rel=1e-3)
     # Paired over the same truths, the unconditioned map is behind by more than 3 standard errors.
+    assert np.all(np.isfinite(scores["untrained"].per_simulation))
     difference = scores["untrained"].per_simulation - scores["trained"].per_simulation
     assert difference.mean() > 3 * difference.std(ddof=1) / np.sqrt(8), difference
 
@@ -219,6 +220,24 @@ def test_the_selection_checks_its_candidates(contextual):
         select_map(jax.random.key(0), model, {"a": contextual, "b": other}, **options)
     with pytest.raises(ValueError, match="skip_steps must be in"):
         select_map(jax.random.key(0), model, {"a": contextual}, skip_steps=4, **options)
+    with pytest.raises(ValueError, match="skip_steps must be an int"):
+        select_map(jax.random.key(0), model, {"a": contextual}, skip_steps=1.5, **options)
+
+
+def test_a_selection_where_no_filter_stays_finite_is_refused(contextual):
+    # Truths that overflow (x_t = 1e30 x_{t-1}): every candidate's error is +inf, none is kept.
+    exploding = otf.models.linear_gaussian([[1e30]], [[Q]], [[1.0]], [[R]], [0.0], [[1.0]])
+    with pytest.raises(ValueError, match="no candidate's filter stayed finite"):
+        select_map(jax.random.key(0), exploding, {"a": contextual, "b": contextual}, num_simulations=2, num_steps=4,
+                   num_particles=20)
+
+
+def test_overrides_may_not_set_what_the_candidates_differ_by(tmp_path):
+    from ot_filter.experiments.amortised import map_for
+
+    with pytest.raises(ValueError, match=r"overrides \['enkf_layer'\] are what the candidates"):
+        map_for(str(tmp_path / "map"), jax.random.key(0), "dynamic", enkf_layer=True)
+    assert not (tmp_path / "map").exists()  # refused before anything was trained
 
 
 @pytest.mark.long

@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -161,7 +162,28 @@ def test_an_amortised_map_is_trained_once_stored_in_the_run_and_reused_by_a_late
     assert candidates["enkf_layer"].config.enkf_layer and not candidates["plain"].config.enkf_layer
     for got, want in zip(jax.tree.leaves(trained.params), jax.tree.leaves(candidates[selection["chosen"]].params)):
         np.testing.assert_array_equal(got, want)
-    assert selection["offline_seconds"] > sum(one.info["seconds"] for one in candidates.values())
+    assert selection["offline_seconds"] == pytest.approx(
+        sum(one.info["seconds"] for one in candidates.values())
+        + sum(score["seconds"] for score in selection["scores"].values()))
+    for label in candidates:  # each score keeps its per-truth errors: as many truths as the offline bank
+        assert len(selection["scores"][label]["per_simulation"]) == trained.info["simulations"]
+    # An interrupted offline stage resumes from the candidates it stored, if trained the same way.
+    from ot_filter.experiments.amortised import map_for
+    from ot_filter.runner.catalogue import cell_key
+
+    resumed = tmp_path / "resumed"
+    shutil.copytree(stored / "candidates" / "plain", resumed / "candidates" / "plain")
+    same = dict(num_particles=40, num_steps=3, num_iterations=60)
+    again, histories = map_for(str(resumed), cell_key(0, 999_983), "dynamic", candidates={"plain": {}}, **same)
+    assert histories is None and again.info["selection"]["chosen"] == "plain"
+    for got, want in zip(jax.tree.leaves(again.params), jax.tree.leaves(candidates["plain"].params)):
+        np.testing.assert_array_equal(got, want)
+    # A candidate trained with other options is refused, not ranked against fresh ones.
+    stale = tmp_path / "stale"
+    shutil.copytree(stored / "candidates" / "plain", stale / "candidates" / "plain")
+    with pytest.raises(ValueError, match="trained with other options"):
+        map_for(str(stale), cell_key(0, 999_983), "dynamic", candidates={"plain": {}},
+                **dict(same, num_iterations=120))
     rows = {row["method"]: row for row in first.metrics["results"]}
     assert set(rows) == {"amortised", "amortised_warm"}
     for row in rows.values():
