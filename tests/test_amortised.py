@@ -13,6 +13,7 @@ import pytest
 
 import ot_filter as otf
 from ot_filter.amortised import (
+    MapScore,
     AmortisedMap,
     ForecastBank,
     MapMismatchError,
@@ -222,6 +223,13 @@ def test_the_selection_checks_its_candidates(contextual):
         select_map(jax.random.key(0), model, {"a": contextual}, skip_steps=4, **options)
     with pytest.raises(ValueError, match="skip_steps must be an int"):
         select_map(jax.random.key(0), model, {"a": contextual}, skip_steps=1.5, **options)
+    planar = otf.models.linear_gaussian(np.eye(2), np.eye(2), np.eye(2), np.eye(2), np.zeros(2), np.eye(2))
+    with pytest.raises(ValueError, match=r"model has \(state, observation\) dimensions \(2, 2\), the map 'scalar-lg'"):
+        select_map(jax.random.key(0), planar, {"a": contextual}, **options)
+    # Stored scores are strict JSON: a truth whose filter was not finite is null, not Infinity.
+    record = MapScore(float("inf"), float("inf"), np.array([0.5, np.inf]), 3, 1.0).record()
+    assert record["mse"] is None and record["stderr"] is None and record["per_simulation"] == [0.5, None]
+    json.dumps(record, allow_nan=False)
 
 
 def test_a_selection_where_no_filter_stays_finite_is_refused(contextual):
@@ -238,6 +246,14 @@ def test_overrides_may_not_set_what_the_candidates_differ_by(tmp_path):
     with pytest.raises(ValueError, match=r"overrides \['enkf_layer'\] are what the candidates"):
         map_for(str(tmp_path / "map"), jax.random.key(0), "dynamic", enkf_layer=True)
     assert not (tmp_path / "map").exists()  # refused before anything was trained
+    # A network option (also one of MAP_OPTIONS) may be overridden: a candidate stored with the
+    # defaults is then stale, and refused before anything is trained.
+    stored = tmp_path / "widened" / "candidates" / "plain"
+    stored.mkdir(parents=True)
+    (stored / "map.json").write_text("{}")
+    (stored / "options.json").write_text(json.dumps({"width": 64}))
+    with pytest.raises(ValueError, match="trained with other options"):
+        map_for(str(tmp_path / "widened"), jax.random.key(0), "dynamic", candidates={"plain": {}}, width=16)
 
 
 @pytest.mark.long

@@ -115,14 +115,16 @@ def test_an_ensemble_far_from_the_observation_is_caught_by_the_predictive_check(
     np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("noise", ["known R", "simulator only"])
+@pytest.mark.parametrize("noise", ["known R", "known dense R", "simulator only"])
 def test_the_fallback_reads_the_active_particles_and_the_observed_components_only(noise):
     # As above with 200 of 256 particles active (the padding far off) and the second component
     # of y missing: the fallback's gain comes from the active pairs' observed component, the
     # padding lands at the posterior mean. With R known the gain is Cov(X, h) (Cov(h) + R)^-1,
     # for a model that only simulates its observations the simulated pairs' Cov(X, Y) Cov(Y)^-1.
-    model = DYNAMIC if noise == "known R" else DYNAMIC._replace(observation_noise_cov=None)
-    assert model.has_gaussian_observation_noise == (noise == "known R")
+    # A dense R: the missing component's row and column both leave it (only R[0, 0] counts).
+    model = {"known R": DYNAMIC, "simulator only": DYNAMIC._replace(observation_noise_cov=None),
+             "known dense R": DYNAMIC._replace(observation_noise_cov=jnp.array([[2.0, 1.2], [1.2, 1.5]]))}[noise]
+    assert model.has_gaussian_observation_noise == (noise != "simulator only")
     frozen = otf.ot(num_iterations=5, potential_optimizer=optax.sgd(0.0),
                     transport_optimizer=optax.sgd(0.0), prior_smoothing=0.0, concavity_points=0)
     particles = jax.random.normal(jax.random.key(11), (256, 2)).at[200:].set(40.0)

@@ -178,3 +178,24 @@ def test_ot_with_an_untrained_map_and_the_deterministic_layer_is_the_sample_kalm
     np.testing.assert_allclose(np.mean(posterior, axis=0), X.mean(0) + gain @ (np.asarray(observation) - Y.mean(0)),
                                atol=2e-3)
     np.testing.assert_allclose(np.cov(np.asarray(posterior).T), cov[:n, :n] - gain @ cov[:n, n:].T, atol=2e-3)
+
+
+def test_the_known_noise_gain_is_the_dense_formula_and_survives_a_singular_innovation():
+    from ot_filter.transport.saddle import known_noise_gain
+
+    x = jax.random.normal(jax.random.key(0), (200, 3))
+    predicted = x[:, :2] ** 2 + 0.1 * jax.random.normal(jax.random.key(1), (200, 2))
+    noise = jnp.array([[0.5, 0.2], [0.2, 0.3]])
+    xc, hc = np.asarray(x - x.mean(0), np.float64), np.asarray(predicted - predicted.mean(0), np.float64)
+    cross, cov_h = xc.T @ hc / 199, hc.T @ hc / 199
+    np.testing.assert_allclose(known_noise_gain(x, predicted, noise), np.linalg.solve(cov_h + noise, cross.T).T,
+                               rtol=1e-4, atol=1e-5)
+    # 3 particles for 8 components and R = 0: Cov(h) + R has rank 2, its Cholesky factor is NaN in
+    # float32; the gain is then the one with the relative ridge 1e-4 (1 + tr / m), and finite.
+    x, predicted = jax.random.normal(jax.random.key(2), (3, 8)), jax.random.normal(jax.random.key(3), (3, 8))
+    gain = known_noise_gain(x, predicted, jnp.zeros((8, 8)))
+    xc, hc = np.asarray(x - x.mean(0), np.float64), np.asarray(predicted - predicted.mean(0), np.float64)
+    cross, cov_h = xc.T @ hc / 2, hc.T @ hc / 2
+    ridged = cov_h + 1e-4 * (1 + np.trace(cov_h) / 8) * np.eye(8)
+    assert np.all(np.isfinite(np.asarray(gain)))
+    np.testing.assert_allclose(gain, np.linalg.solve(ridged, cross.T).T, rtol=2e-3, atol=2e-3)

@@ -23,7 +23,7 @@ from ot_filter.amortised.training import AmortisedMap
 from ot_filter.filtering import run_filter
 from ot_filter.lib.validation import check_int
 from ot_filter.metrics import mse
-from ot_filter.model import StateSpaceModel, simulate
+from ot_filter.model import StateSpaceModel, model_dimensions, simulate
 
 Array = jax.Array
 
@@ -40,9 +40,11 @@ class MapScore(NamedTuple):
     seconds: float  # compile and run
 
     def record(self) -> dict:
-        """JSON-ready (stored in the selected map's ``info``)."""
-        return {"mse": self.mse, "stderr": self.stderr, "fallback_steps": self.fallback_steps,
-                "seconds": self.seconds, "per_simulation": self.per_simulation.tolist()}
+        """JSON-ready (stored in the selected map's ``info``): a non-finite error is ``None``
+        (strict JSON has no infinity)."""
+        finite = lambda value: value if np.isfinite(value) else None  # noqa: E731
+        return {"mse": finite(self.mse), "stderr": finite(self.stderr), "fallback_steps": self.fallback_steps,
+                "seconds": self.seconds, "per_simulation": [finite(value) for value in self.per_simulation.tolist()]}
 
 
 def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_simulations: int, num_steps: int,
@@ -53,6 +55,11 @@ def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_
     ``skip_steps``, then over the truths. A truth whose filter is not finite scores +inf."""
     from ot_filter.updates.amortised import amortised_ot  # the update builder imports this package
 
+    dimensions = model_dimensions(model)
+    if dimensions != (trained.config.state_dim, trained.config.observation_dim):
+        raise ValueError(f"model has (state, observation) dimensions {dimensions}, the map "
+                         f"{trained.config.model!r} was trained for "
+                         f"{(trained.config.state_dim, trained.config.observation_dim)}")
     num_simulations = check_int("num_simulations", num_simulations, minimum=2)
     num_steps = check_int("num_steps", num_steps)
     num_particles = check_int("num_particles", num_particles, minimum=2)

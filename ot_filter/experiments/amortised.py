@@ -140,8 +140,9 @@ def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: 
                options: dict) -> tuple[AmortisedMap, list[TrainingHistory] | None]:
     """A candidate trained with ``options`` (``train_experiment_map``), stored in ``where`` with
     those options (``options.json``); reloaded from there if it was trained with the same ones,
-    refused if with others (a stale map would be ranked against fresh ones)."""
-    record = json.loads(json.dumps(dict(OFFLINE[experiment], **MAP_OPTIONS, **options, num_particles=num_particles)))
+    refused if with others (a stale map would be ranked against fresh ones). The record holds the
+    settings, not ``key``: a stored map is an artefact that later runs reuse whatever their key."""
+    record = json.loads(json.dumps({**OFFLINE[experiment], **MAP_OPTIONS, **options, "num_particles": num_particles}))
     if os.path.exists(os.path.join(where, "map.json")):
         options_file = os.path.join(where, "options.json")
         stored = None
@@ -153,9 +154,12 @@ def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: 
                              f"{record}): remove it to train it again")
         return load_map(where, model=map_name(experiment, dim, observed)), None
     trained, histories = train_experiment_map(key, experiment, dim, observed, num_particles, **options)
+    # The options first: a run stopped between the two files leaves options without a map (trained
+    # again), never a map without its options (refused).
+    os.makedirs(where, exist_ok=True)
+    write_text_atomic(os.path.join(where, "options.json"), json.dumps(record, indent=1, sort_keys=True))
     save_map(where, trained)
     np.savez(os.path.join(where, "history.npz"), **history_arrays(histories))
-    write_text_atomic(os.path.join(where, "options.json"), json.dumps(record, indent=1, sort_keys=True))
     return trained, histories
 
 

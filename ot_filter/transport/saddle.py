@@ -141,10 +141,14 @@ def known_noise_gain(x: Array, predicted: Array, noise_cov: Array, active: Array
     """``K[n, m] = Cov(X, h(X)) (Cov(h(X)) + R)^{-1}``, the EnKF's gain when the observation
     noise's covariance ``R[m, m]`` is known, from ``x[B, n]`` and the noise-free predictions
     ``predicted[B, m]`` (the ``active`` rows), all in one set of coordinates. Cov(h) + R is
-    positive definite: no ridge, and well conditioned where the sample Cov(Y) is not (N near m)."""
+    positive definite: no ridge, and well conditioned where the sample Cov(Y) is not (N near m).
+    Where its Cholesky factor still fails (float32, fewer particles than m and an R tiny next
+    to the spread of h), the gain with ``enkf_gain``'s relative ridge is used instead."""
     _, _, _, cross, cov_h = _moments(x, predicted, active)
-    gain, _ = cholesky_gain(cross, cov_h + noise_cov)
-    return gain
+    innovation = cov_h + noise_cov
+    gain, _ = cholesky_gain(cross, innovation)
+    ridged, _ = cholesky_gain(cross, _ridged(innovation))
+    return jnp.where(jnp.all(jnp.isfinite(gain)), gain, ridged)
 
 
 def deterministic_layer(x: Array, y: Array, active: Array | None = None) -> DeterministicLayer:
