@@ -185,6 +185,28 @@ def test_an_unconditioned_map_fails_the_same_check(trained):
     assert error > 3 * monte_carlo
 
 
+def test_a_map_used_as_is_that_does_not_condition_falls_back_to_the_enkf(trained):
+    # The zero map is the identity: it keeps the prior. On a prior of std 10 with R = 0.5 the
+    # EnKF keeps std 0.7, so the transported spread is 14 times the EnKF's: the step falls back
+    # (to the dense perturbed-EnKF reference). On a prior of std 1 it is 1.7 times: the map is used.
+    from conftest import perturbed_enkf_reference
+
+    trained_map, _, _ = trained
+    identity = otf.amortised_ot(trained_map._replace(params=jax.tree.map(jnp.zeros_like, trained_map.params)))
+    model, y = scalar_model(), jnp.array([3.0])
+    for scale, falls_back in ((10.0, True), (1.0, False)):
+        particles = scale * jax.random.normal(jax.random.key(5), (400, 1))
+        state = identity.init(jax.random.key(6), particles, model)
+        posterior, after, info = identity.apply(jax.random.key(7), state, particles, y, model)
+        assert bool(info.diverged) == falls_back and float(info.predictive_z) < 10.0
+        if falls_back:
+            expected = perturbed_enkf_reference(particles, after.simulated_observations, y, after.standardisation,
+                                                model=model)
+            np.testing.assert_allclose(posterior, expected, rtol=1e-5, atol=1e-5)
+        else:
+            np.testing.assert_allclose(posterior, particles, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.long
 def test_the_selection_keeps_the_map_whose_filter_tracks_simulated_truths(trained):
     # Both candidates filter the same 8 simulated truths (one compiled, vmapped program per map);

@@ -199,3 +199,15 @@ def test_the_known_noise_gain_is_the_dense_formula_and_survives_a_singular_innov
     ridged = cov_h + 1e-4 * (1 + np.trace(cov_h) / 8) * np.eye(8)
     assert np.all(np.isfinite(np.asarray(gain)))
     np.testing.assert_allclose(gain, np.linalg.solve(ridged, cross.T).T, rtol=2e-3, atol=2e-3)
+
+
+def test_wider_than_enkf_compares_each_coordinate_s_spread_over_the_active_rows():
+    base = jax.random.normal(jax.random.key(4), (400, 2))
+    enkf = base * jnp.array([1.0, 2.0])
+    active = jnp.arange(400) < 300
+    limit = divergence.MAX_SPREAD_OVER_ENKF
+    for factor, expected in ((0.98, False), (1.02, True)):
+        # the second coordinate at factor x the bound, the padding (inactive rows) far off
+        moved = (base * jnp.array([1.0, 2.0 * limit * factor])).at[300:].set(1e6)
+        assert bool(divergence.wider_than_enkf(moved, enkf.at[300:].set(-1e6), active)) == expected
+    assert not bool(divergence.wider_than_enkf(0.5 * enkf, enkf, active))

@@ -35,6 +35,17 @@ diverged when any of these holds:
   at m = 2, so the bound is lowered to ``LOW_TREND_SIGMAS`` such stds below 1 (below 0 for
   m <= 4: off). A fixed bound of 0.3 fired on a tracking Lorenz-63 filter (m = 2) in 1 of 10
   simulations, each time restarting the networks.
+
+A map used without training (an amortised update, no online iterations) has no loss to watch,
+and fails differently: on a prior unlike its training ensembles it transports without
+conditioning. An amortised Lorenz-63 map, run with inflation 1.05 that it was not trained with,
+kept 0.93-0.99 of the prior's spread at every update while the EnKF would have kept 0.4-0.6; the
+ensemble widened through the dynamics, by 10x per step at the end, with z, the trend and J all
+in range, until the states overflowed (1e13 after 12 steps). Its update therefore also fails
+when the transported spread of some coordinate exceeds ``MAX_SPREAD_OVER_ENKF`` times the EnKF
+fallback's on the same prior (``wider_than_enkf``): that test fired there 8 steps before the
+overflow. A Bayes posterior wider than the linear update's by that much needs an observation
+far in the tails of its prior predictive.
 """
 
 from __future__ import annotations
@@ -52,6 +63,7 @@ __all__ = [
     "CHECK_ROWS",
     "MAX_POSTERIOR_SPREAD",
     "MAX_PREDICTIVE_Z",
+    "MAX_SPREAD_OVER_ENKF",
     "MAX_TRANSPORT_DISTANCE",
     "LOW_TREND_SIGMAS",
     "MIN_INNOVATION_TREND",
@@ -61,6 +73,7 @@ __all__ = [
     "diverged",
     "innovation_trend",
     "predictive_z",
+    "wider_than_enkf",
 ]
 
 # Transported particles spreading more than this many prior standard deviations mean divergence.
@@ -80,6 +93,9 @@ CHECK_ROWS = 64
 MAX_TRANSPORT_DISTANCE = 6.0
 # ... and further out than the particle's own prior position plus this many prior stds.
 TRANSPORT_MARGIN = 2.0
+# A map used without training whose transported spread exceeds this many times the EnKF
+# fallback's, in some coordinate, has not conditioned on the observation (module docstring).
+MAX_SPREAD_OVER_ENKF = 3.0
 # Weight of the past in the moving average of the normalised innovation (about 5 updates).
 TREND_SMOOTHING = 0.8
 # Below this the ensemble's predicted innovation variance has been, on average over about 5
@@ -116,6 +132,15 @@ def diverged(trace_finite: Array, smoothed_loss: Array, threshold, n: int, moved
         | ~jnp.all(jnp.where(active[:, None], jnp.abs(moved_standard), 0.0) <= reach)
         | ~(z <= MAX_PREDICTIVE_Z)
     )
+
+
+def wider_than_enkf(moved: Array, enkf_particles: Array, active: Array) -> Array:
+    """True when some coordinate of the transported ``moved[N, n]`` spreads more than
+    ``MAX_SPREAD_OVER_ENKF`` times the EnKF's ``enkf_particles[N, n]`` (active rows, the same
+    coordinates)."""
+    _, spread = masked_mean_and_std(moved, active)
+    _, enkf_spread = masked_mean_and_std(enkf_particles, active)
+    return ~jnp.all(spread <= MAX_SPREAD_OVER_ENKF * enkf_spread)
 
 
 def innovation_trend(previous: Array, simulated: Array, observation: Array, active: Array) -> Array:

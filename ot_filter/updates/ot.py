@@ -62,7 +62,7 @@ from ot_filter.transport.batches import TrainingData, own_pairs, sample_batch
 from ot_filter.transport.context import ContextScaling, conditioning, context_features, context_size
 from ot_filter.transport.diagnostics import c_concavity_min_eigenvalue
 from ot_filter.transport.divergence import diverged as divergence_test
-from ot_filter.transport.divergence import innovation_trend, lost_track
+from ot_filter.transport.divergence import innovation_trend, lost_track, wider_than_enkf
 from ot_filter.transport.divergence import CHECK_ROWS
 from ot_filter.transport.divergence import predictive_z as predictive_check
 from ot_filter.transport.networks import ACTIVATIONS, PotentialNetwork, TransportNetwork
@@ -582,9 +582,13 @@ def _apply(settings, key, state, particles, observation, model, structure):
 
     # 5. Fall back where training diverged: the stochastic EnKF with this update's own simulated
     #    observations (padding at the posterior mean, as the EnKF leaves it), and restart the
-    #    networks.
+    #    networks. A map used as is also falls back where it did not condition (far wider than
+    #    the EnKF: ``wider_than_enkf``).
     fallback_gain = _fallback_gain(structure, model, particles, xs, ys, gain, scaling, observed, active)
-    enkf_particles = scaling.restore_x(transport_input(xs, y_standard, ys, fallback_gain))
+    enkf_standard = transport_input(xs, y_standard, ys, fallback_gain)
+    if structure.first_iterations == 0:
+        diverged = diverged | (jnp.any(observed) & wider_than_enkf(moved, enkf_standard, active))
+    enkf_particles = scaling.restore_x(enkf_standard)
     enkf_mean, _ = masked_mean_and_anomalies(enkf_particles, active, num_active)
     enkf_particles = jnp.where(active[:, None], enkf_particles, enkf_mean)
     posterior = use_where(~diverged, scaling.restore_x(moved), enkf_particles)
