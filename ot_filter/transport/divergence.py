@@ -42,11 +42,11 @@ conditioning. An amortised Lorenz-63 map, run with inflation 1.05 that it was no
 kept 0.86-1.0 of the prior's spread at the updates looked at (steps 300-428), where a linear
 update would have kept about 0.4-0.7; the ensemble widened through the dynamics, by up to 10x
 a step at the end, with z, the trend and J all in range, until the squared error reached 1e13
-(NaN in other simulations). Its update therefore also fails
-when the transported spread of some coordinate exceeds ``MAX_SPREAD_OVER_ENKF`` times the EnKF
-fallback's on the same prior (``wider_than_enkf``): with it that run stayed bounded (14 of 500
-steps fell back). A Bayes posterior wider than the linear update's by that much needs an observation
-far in the tails of its prior predictive.
+(NaN in other simulations). Its update therefore also fails when the transported spread of
+some coordinate exceeds ``MAX_SPREAD_OVER_ENKF`` times the EnKF fallback's on the same prior
+(``wider_than_enkf``): with it that run stayed bounded (14 of 500 steps fell back). A Bayes
+posterior wider than the linear update's by that much needs an observation far in the tails of
+its prior predictive.
 """
 
 from __future__ import annotations
