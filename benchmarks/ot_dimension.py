@@ -198,6 +198,8 @@ def write_report(results, out):
             lines.append(f"| {row['dim']} | {row['ot']['seconds']:.2f} | {row['ot']['ratio_to_first']:.2f} | "
                          f"{row['local_ot']['seconds']:.2f} | {row['local_ot']['ratio_to_first']:.2f} |")
         lines.append("")
+        if results.get("cost_note"):  # what changed since the costs were measured
+            lines += [results["cost_note"], ""]
     if results.get("static"):
         lines += _table(f"Static example (lambda_w = 0.4, y = 1, N = 1000, {results['static_seeds']} seeds, "
                         "library defaults)", results["static"])

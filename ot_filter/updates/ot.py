@@ -31,11 +31,14 @@ states (``transport/batches.py``). The map is
 applied to the original particles. On the static example this halves the W1 error at N = 100 and
 does not hurt N = 1000 (benchmarks/static_example.py; also checked on a bimodal prior).
 
-Defaults (measured on the chapter's static example): ReLU, width 32, one residual block,
-mini-batch 128, 10 T steps per f step, Adam(1e-3) on T and AdamW(1e-4, weight decay 1) on f,
-10,000 outer iterations (500 at the later, warm-started updates of a filter), smoothing factor
-1. The authors' 1e-3 for f diverges after 2,000-4,000 iterations (J climbs, f's scale grows, the
-map collapses onto one mode); a slower, weight-decayed f is stable beyond 20,000.
+Defaults (measured on the chapter's static example): ReLU, one residual block, width and
+mini-batch from the state dimension (``default_sizes``: 32 and 128 at n <= 2, the chapter's; width
+64 and up to 1024 pairs above), 10 T steps per f step, Adam(1e-3) on T and AdamW(3e-4, weight
+decay 1) on f, 10,000 outer iterations (500 at the later, warm-started updates of a filter),
+smoothing factor 1. The authors' 1e-3 for f diverges after 2,000-4,000 iterations (J climbs, f's
+scale grows, the map collapses onto one mode); a weight-decayed f at 3e-4 is stable over the
+10,000 (at n = 2 it gives W1 0.075 against 0.087 for 1e-4, the same 3 seeds; at n = 10 with
+batches of 256, 0.140 against 0.143 for 1e-3).
 
 The builder is a recipe: it validates the structure (``OTStructure``, static) and the numbers
 (``OTSettings``: learning rates, weight decay, smoothing factor, thresholds; traced, so a sweep
@@ -46,6 +49,7 @@ and ``lib/`` (the fallback combinator).
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -195,9 +199,9 @@ class OTUpdate(NamedTuple):
 
 def ot(
     num_iterations: int | tuple[int, int] = (10_000, 500),
-    batch_size: int = 128,
+    batch_size: int | None = None,
     inner_steps: int = 10,
-    width: int = 32,
+    width: int | None = None,
     num_blocks: int = 1,
     activation: str = "relu",
     enkf_layer: bool | str = False,
@@ -211,7 +215,7 @@ def ot(
     concavity_step: float = 0.1,
     prior_smoothing: float = 1.0,
     fresh_observations: bool = True,
-    potential_learning_rate: float = 1e-4,
+    potential_learning_rate: float = 3e-4,
     potential_weight_decay: float = 1.0,
     transport_learning_rate: float = 1e-3,
 ) -> OTUpdate:
@@ -224,10 +228,11 @@ def ot(
         ``floor`` (e.g. ``(1024, 64)``; meant for warm-started filters). The default
         ``(10_000, 500)`` gives one update its full 10,000 and a filter's warm-started later
         steps 500 each (a filter with a constant 10,000 spent 8 s a step).
-      batch_size: mini-batch size (>= 2) of joint pairs and of independent copies.
+      batch_size: mini-batch size (>= 2) of joint pairs and of independent copies; None: chosen
+        from the state dimension at ``init`` (``default_sizes``: 128 at n <= 2, up to 1024).
       inner_steps: T optimiser steps per outer iteration.
       width, num_blocks, activation: the networks (both f and T); activation in
-        ``transport.ACTIVATIONS``.
+        ``transport.ACTIVATIONS``; width None: chosen like the batch (32 at n <= 2, else 64).
       enkf_layer: precede T by the EnKF layer: True or ``"perturbed"``, x + K (y - Y^i);
         ``"deterministic"``, m + K (y - mean Y) + A (x - m) with A the Gaussian OT map to the
         Kalman posterior covariance (no observation-perturbation noise: ``transport/saddle.py``).
@@ -241,7 +246,7 @@ def ot(
 
     Numbers (may be traced: ``vmap`` over them runs in one program):
 
-      potential_learning_rate, potential_weight_decay: the default AdamW on f (1e-4, 1).
+      potential_learning_rate, potential_weight_decay: the default AdamW on f (3e-4, 1).
       transport_learning_rate: the default Adam on T (1e-3).
       divergence_threshold: |smoothed J| above this times n counts as divergence.
       inflation: multiplies the prior particles' anomalies before the update (as ``enkf``'s):
@@ -317,9 +322,9 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
     structure = OTStructure(
         first_iterations=first_iterations,
         floor_iterations=floor_iterations,
-        batch_size=check_int("batch_size", batch_size, minimum=2),
+        batch_size=None if batch_size is None else check_int("batch_size", batch_size, minimum=2),
         inner_steps=check_int("inner_steps", inner_steps),
-        width=check_int("width", width),
+        width=None if width is None else check_int("width", width),
         num_blocks=check_int("num_blocks", num_blocks, minimum=0),
         activation=activation,
         enkf_layer=layer is not None,
@@ -332,6 +337,32 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
         deterministic_layer=layer == "deterministic",
     )
     return settings, structure
+
+
+def default_sizes(n: int) -> tuple[int, int]:
+    """``(width, batch_size)`` of ``ot()``'s networks when not given, for state dimension n.
+
+    Measured on the static example (lambda_w = 0.4, y = 1, N = 1000, 10,000 iterations, W1 to
+    the exact marginals; floor 0.037 at n = 10; ``benchmarks/ot_sizes.py``, records in
+    ``benchmarks/results/ot_dimension_size_rule/``): at n = 10 width 32 / batch 128 gives 0.37,
+    width 64 with batches of 256, 512 and 1024 gives 0.140, 0.120 and 0.091 (f's learning rate
+    3e-4), and width 128 nothing over 64 (0.122 at batch 512, three times the cost). The pairs
+    seen per iteration are the lever, and one pair carries n coordinates' worth of conditioning
+    to learn: the batch grows as 32 n^2 (128 at n = 2, the chapter's setting) up to 1024. At
+    n = 50 width 64 is too small (W1 0.42-0.46, the EnKF's level); wider costs (width / 64)^2.
+    """
+    width = 32 if n <= 2 else 64
+    batch = 1 << int(round(math.log2(min(max(32 * n * n, 128), 1024))))
+    return width, batch
+
+
+def sized(structure: OTStructure, n: int) -> OTStructure:
+    """The structure with ``default_sizes`` filled in where ``width`` / ``batch_size`` is None
+    (static: n is a shape)."""
+    if structure.width is not None and structure.batch_size is not None:
+        return structure
+    width, batch = default_sizes(n)
+    return structure._replace(width=structure.width or width, batch_size=structure.batch_size or batch)
 
 
 # ---- the steps the recipe binds ----
@@ -401,6 +432,7 @@ def ot_init(settings: OTSettings, key: Array, particles: Array, model: StateSpac
         raise ValueError(f"model.sample_observation must return y[m], got shape {y.shape}")
     m = y.shape[0]
     dtype = particles.dtype
+    structure = sized(structure, n)
     return OTState(
         log_weights=uniform_log_weights(particles),
         training=starting_training(settings, structure, key, n, m, dtype),
@@ -418,6 +450,7 @@ def ot_apply(settings: OTSettings, key: Array, state: OTState, particles: Array,
              model: StateSpaceModel, *, structure: OTStructure):
     """Shapes checked here; the work is one compiled program (also when called outside jit)."""
     observation = check_apply_arguments(state, particles, observation)
+    structure = sized(structure, particles.shape[1])
     return _apply(settings, key, state, particles, observation, model, structure=structure)
 
 
@@ -674,7 +707,7 @@ def ot_transport(state: OTState, particles: Array, observation: Array, simulated
             f"simulated observations must have shape {(particles.shape[0], m)} (one per particle), "
             f"got {simulated.shape}; pass the particles given to the last apply"
         )
-    return _transport(state, particles, observation, simulated, structure=structure)
+    return _transport(state, particles, observation, simulated, structure=sized(structure, particles.shape[1]))
 
 
 @jax.jit(static_argnames=("structure",))
@@ -695,7 +728,7 @@ def _transport(state, particles, observation, simulated, structure):
 
 def ot_potential(state: OTState, x: Array, y: Array, *, structure: OTStructure) -> Array:
     scaling = state.standardisation
-    potential_net, _ = networks(structure)
+    potential_net, _ = networks(sized(structure, scaling.x_mean.shape[0]))
     return potential_net.apply(state.training.params.potential, scaling.standardise_x(x),
                                conditioning(scaling.standardise_y(y), state.context))
 
