@@ -263,3 +263,8 @@ def test_the_deterministic_layer_needs_gaussian_observation_noise():
         local_ot(local_windows(model.geometry, 0.0), enkf_layer="deterministic", taper="gauss")
     with pytest.raises(ValueError, match="deterministic layer"):
         local_ot(local_windows(model.geometry, 0.0), enkf_layer=True, taper="gaspari_cohn")
+    # the local map's sizes are given, never ot()'s rule for n (a window is not the state)
+    with pytest.raises(ValueError, match="batch_size"):
+        local_ot(local_windows(model.geometry, 0.0), batch_size=None)
+    with pytest.raises(ValueError, match="width"):
+        local_ot(local_windows(model.geometry, 0.0), width=None)

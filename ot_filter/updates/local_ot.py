@@ -171,6 +171,8 @@ def local_ot(
     if not isinstance(windows, LocalWindows):
         raise TypeError("windows must be a localisation.LocalWindows: "
                         f"local_windows(model.geometry, radius, state_radius), got {type(windows).__name__}")
+    # The local map's sizes are given (its inputs are a window, whatever n): not ot()'s rule.
+    batch_size, width = check_int("batch_size", batch_size, minimum=2), check_int("width", width)
     settings, structure = recipe(
         num_iterations=num_iterations, batch_size=batch_size, inner_steps=inner_steps, width=width,
         num_blocks=num_blocks, activation=activation, enkf_layer=enkf_layer,

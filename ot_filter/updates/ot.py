@@ -128,9 +128,9 @@ class OTStructure(NamedTuple):
 
     first_iterations: int
     floor_iterations: int
-    batch_size: int
+    batch_size: int | None  # None: ``default_sizes`` of the state dimension (``sized``)
     inner_steps: int
-    width: int
+    width: int | None  # None: as batch_size
     num_blocks: int
     activation: str
     enkf_layer: bool
