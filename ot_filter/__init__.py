@@ -35,7 +35,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed)
 
 __all__ = [
     "BayesUpdate",

@@ -129,7 +129,8 @@ def run_demo(out: str, seed: int = 0) -> dict:
 
 # Mini-batches of 256 (both OT filters) instead of ot()'s 1024 at n = 10 keep the demo short.
 # Measured here (whole demo wall time; global filter's step; its W1): 1024: 167 s, 2.7 s, 0.28;
-# 256: 131 s, 0.7 s, 0.33; 128: 113 s, 0.36 s, 0.51 (compilation is most of the rest).
+# 256: 131 s, 0.7 s, 0.33; 128: 113 s, 0.36 s, 0.51 (compilation is most of the rest;
+# benchmarks/results/demo_batch/).
 BIMODAL_DEMO = dict(dim=10, num_particles=500, num_steps=30, ot_options={"batch_size": 256})
 
 

@@ -46,7 +46,8 @@ OFFLINE = {
 # (128, 32), 0.142 with a constant 32, 0.31 when every step restarts from the offline map, and
 # the online OT filter 0.154 on the same truths. Lorenz-63: with the map's batch (256) and 10 T
 # steps, (128, 32) cost 4 times the online filter's step (which has batch 128, 5 T steps, 64 a
-# step), so (b) there takes the online filter's batch and T steps and half its schedule.
+# step then; 32 now), so (b) there takes the online filter's batch and T steps and half its
+# schedule of then.
 WARM_OPTIONS = {
     "dynamic": {"num_iterations": (128, 32)},
     "lorenz63": {"num_iterations": (64, 16), "batch_size": 128, "inner_steps": 5},

@@ -166,7 +166,9 @@ def local_ot(
         serves coordinates whose priors differ in shape (a filter's coordinates after different
         observations), not only in location and scale (default 8). 0: the coordinates' local
         problems are taken to be alike.
-      Every other argument is ``ot()``'s (``batch_size`` counts local pairs).
+      Every other argument is ``ot()``'s (``batch_size`` counts local pairs), with this update's
+      own defaults: width 32, batches of 128 local pairs and f's rate 1e-4, whatever n (the
+      local problem's size does not grow with n; ``ot()``'s size rule does not apply).
     """
     if not isinstance(windows, LocalWindows):
         raise TypeError("windows must be a localisation.LocalWindows: "
