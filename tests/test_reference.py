@@ -135,3 +135,40 @@ def test_mmd_to_product_rejects_mismatched_masses():
         mmd_to_product(jnp.zeros((5, 2)), jnp.linspace(-1, 1, 11), jnp.ones((3, 11)))
     with pytest.raises(ValueError, match="bandwidth"):
         mmd_to_product(jnp.zeros((5, 2)), jnp.linspace(-1, 1, 11), jnp.ones((2, 11)), bandwidth=0.0)
+
+
+def test_exact_comparison_and_floor_match_the_metrics_pair_by_pair():
+    """The dynamic example's batched comparison (padded to whole batches: 2 x 5 = 10 pairs, not a
+    multiple of 8) and its floor (computed once per run) against ``compare_to_product_grid`` called
+    on each (simulation, time) pair with the keys the docstrings promise."""
+    from ot_filter.experiments.dynamic_example import exact_comparison, exact_floor, exact_posteriors
+    from ot_filter.metrics import compare_to_product_grid, product_grid_sample
+
+    # Float64: the energy distance is a difference of O(1) terms (float32 leaves 1e-6 of it to
+    # the order of the sums, which batching changes).
+    with jax.enable_x64(True):
+        model = otf.models.squared_observation(dim=2)
+        ys = jnp.stack([otf.simulate(jax.random.PRNGKey(s), model, 5)[1] for s in range(2)])  # [S, T, n]
+        reference = exact_posteriors(ys)
+        num = 40
+        particles = jax.random.normal(jax.random.PRNGKey(7), (2, 5, num, 2))
+        log_weights = jax.nn.log_softmax(jax.random.normal(jax.random.PRNGKey(8), (2, 5, num)), axis=-1)
+        key = jax.random.PRNGKey(9)
+        found = exact_comparison(key, particles, log_weights, reference)
+        floor = exact_floor(key, num, reference)
+        pair_keys = jax.random.split(key, 10)
+        for s in range(2):
+            for t in range(5):
+                floor_key, compare_key = jax.random.split(pair_keys[5 * s + t])
+                masses = reference.masses[s, :, t]
+                expected = compare_to_product_grid(compare_key, particles[s, t], jnp.exp(log_weights[s, t]),
+                                                   reference.grid[s], masses, num)
+                exact = product_grid_sample(floor_key, reference.grid[s], masses, num)
+                expected_floor = compare_to_product_grid(compare_key, exact, None, reference.grid[s], masses, num)
+                # The energy distance's self-pairs are sqrt of a rounded |a|^2 + |b|^2 - 2ab ~ 1e-16:
+                # up to sqrt(8 eps) |x| ~ 4e-8 * 3 each, however the sums are ordered. A wrong key
+                # or pair moves any of these by ~1e-2.
+                for name, atol in (("w1", 1e-12), ("sliced_w2", 1e-12), ("energy", 2e-7)):
+                    np.testing.assert_allclose(found[name][s, t], getattr(expected, name), rtol=1e-9, atol=atol)
+                    np.testing.assert_allclose(floor["floor_" + name][s, t], getattr(expected_floor, name),
+                                               rtol=1e-9, atol=atol)
