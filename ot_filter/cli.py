@@ -281,8 +281,8 @@ def compile_cache_directory(environ=os.environ) -> str | None:
 def use_compile_cache(directory: str | None) -> None:
     """JAX's persistent compilation cache in ``directory`` (None: none), unless the caller set
     one (``JAX_COMPILATION_CACHE_DIR``). XLA's compilation is a third to a half of a short run on
-    a CPU (the demo's two OT filters compile for 11-14 s each): a repeated run reads the programs
-    back instead (the demo's bimodal part: 97 s, then 52 s)."""
+    a CPU (the demo's two OT filters compile for 11-15 s each): a repeated run reads the programs
+    back instead (the demo's bimodal part: 86 s, then 52 s)."""
     import jax
 
     if directory is None or jax.config.jax_compilation_cache_dir:
