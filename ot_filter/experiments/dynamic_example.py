@@ -114,13 +114,18 @@ def filter_simulations(key, model, update, observations, num_particles: int, num
 def _flat_pairs(particles, log_weights, reference):
     """``(grid[G], (particles[S T, N, n], log_weights[S T, N], masses[S T, n, G]))``: every
     (simulation, time) pair of a run and its exact posterior, flattened for one ``lax.map``."""
-    num_simulations, num_steps = particles.shape[:2]
+    grid, masses = _flat_masses(reference)
+    return grid, jax.tree.map(
+        lambda a: jnp.reshape(a, (masses.shape[0],) + a.shape[2:]),
+        (jnp.asarray(particles), jnp.asarray(log_weights)),
+    ) + (masses,)
+
+
+def _flat_masses(reference):
+    """``(grid[G], masses[S T, n, G])``: the exact posterior of every (simulation, time) pair."""
     grid = jnp.asarray(reference.grid[0] if reference.grid.ndim > 1 else reference.grid)
     masses = jnp.swapaxes(jnp.asarray(reference.masses), 1, 2)  # [S, T, n, G]
-    return grid, jax.tree.map(
-        lambda a: jnp.reshape(a, (num_simulations * num_steps,) + a.shape[2:]),
-        (jnp.asarray(particles), jnp.asarray(log_weights), masses),
-    )
+    return grid, jnp.reshape(masses, (-1,) + masses.shape[2:])
 
 
 def mmd_to_exact(particles, log_weights, reference, bandwidth: float, standardise: bool):
@@ -181,9 +186,9 @@ def exact_floor(key, num_particles: int, reference) -> dict:
     keyed as in ``exact_comparison``: ``{"floor_w1": [S, T, n], "floor_sliced_w2": [S, T],
     "floor_energy": [S, T]}``. It does not depend on a filter: a run computes it once."""
     num_simulations, num_steps = reference.masses.shape[0], reference.masses.shape[2]
-    grid = jnp.asarray(reference.grid[0] if reference.grid.ndim > 1 else reference.grid)
-    keys = _comparison_keys(key, num_simulations * num_steps)
-    samples = _exact_samples(keys, jnp.asarray(reference.masses), grid, num_particles)  # [S, T, N, n]
+    grid, masses = _flat_masses(reference)
+    samples = _exact_samples(_comparison_keys(key, masses.shape[0]), masses, grid, num_particles)
+    samples = samples.reshape((num_simulations, num_steps) + samples.shape[1:])  # [S, T, N, n]
     uniform = jnp.full(samples.shape[:3], -np.log(num_particles), samples.dtype)
     # The filters' comparison (one compiled program) with the samples as equally weighted particles.
     floor = exact_comparison(key, samples, uniform, reference)
@@ -192,12 +197,9 @@ def exact_floor(key, num_particles: int, reference) -> dict:
 
 @partial(jax.jit, static_argnames="num")
 def _exact_samples(keys, masses, grid, num):
-    """``[S, T, num, n]`` exact samples of every (simulation, time) pair (``masses[S, n, T, G]``),
-    each drawn with its pair's floor key."""
-    num_simulations, num_steps = masses.shape[0], masses.shape[2]
-    flat = jnp.reshape(jnp.swapaxes(masses, 1, 2), (num_simulations * num_steps,) + masses.shape[1:2] + masses.shape[3:])
-    samples = jax.vmap(lambda k, p: product_grid_sample(k[0], grid, p, num))(keys, flat)
-    return samples.reshape((num_simulations, num_steps) + samples.shape[1:])
+    """``[P, num, n]`` exact samples of each of P pairs (``masses[P, n, G]``), each drawn with its
+    pair's floor key."""
+    return jax.vmap(lambda k, p: product_grid_sample(k[0], grid, p, num))(keys, masses)
 
 
 def _comparison_keys(key, num_pairs):
