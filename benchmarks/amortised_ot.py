@@ -27,6 +27,7 @@ import numpy as np  # noqa: E402
 from ot_filter.experiments._common import write_text_atomic  # noqa: E402
 from ot_filter.experiments.amortised import (  # noqa: E402
     WARM_OPTIONS, map_for, map_name, plot_validation, run_amortised_dynamic, run_amortised_lorenz63,
+    warm_options,
 )
 
 METHODS = ("enkf", "sir", "ot", "amortised", "amortised_warm")
@@ -73,6 +74,7 @@ def _compare(experiment, key, simulations, out, run, metric, **model):
     summary = run(jax.random.key(2026), trained, num_simulations=simulations, **model)["metrics"]
     rows = {m: _row(summary, m, metric) for m in METHODS}
     record = _finish(rows, summary["num_steps"], simulations, trained, training_s)
+    record["warm_options"] = warm_options(trained, experiment)
     if metric == "w1":
         record.update(experiment=f"dynamic n = {model['dim']}",
                       metric="W1 to the exact marginals (mean over coordinates, t >= 1)",
@@ -107,7 +109,8 @@ def markdown(records):
         if record.get("floor_worst_coordinate") is not None:
             lines.append(f"| floor (N exact samples) | {record['floor']:.4f} | {record['floor_worst_coordinate']:.4f} | | | |")
         info = record["offline_info"]
-        warm = WARM_OPTIONS["dynamic" if record["experiment"].startswith("dynamic") else "lorenz63"]
+        warm = record.get("warm_options") or WARM_OPTIONS["dynamic" if record["experiment"].startswith("dynamic")
+                                                          else "lorenz63"]
         lines += ["", f"- (b): `amortised_ot(map, {', '.join(f'{k}={v}' for k, v in warm.items())})`.",
                   f"- (a) / online OT error: {record['a_vs_online']:.2f}; (b) / online OT: {record['b_vs_online']:.2f}.",
                   f"- Offline training of the map kept: {info['seconds']:.0f} s ({info['rounds']} rounds, "

@@ -278,6 +278,35 @@ def test_overrides_may_not_set_what_the_candidates_differ_by(tmp_path):
         map_for(str(tmp_path / "widened"), jax.random.key(0), "dynamic", candidates={"plain": {}}, width=16)
 
 
+def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256():
+    from ot_filter.experiments.amortised import MAP_OPTIONS, map_options
+    from ot_filter.updates.ot import default_sizes
+
+    # ot()'s batch: 128 (n <= 2), 256 (n = 3), 512 (n = 4), 1024 (n >= 5).
+    assert [default_sizes(n)[1] for n in (2, 3, 4, 5, 10, 50)] == [128, 256, 512, 1024, 1024, 1024]
+    assert [map_options(n)["batch_size"] for n in (1, 2, 3, 4, 5, 10, 50)] == [256] * 4 + [512] * 3
+    assert {k: v for k, v in map_options(10).items() if k != "batch_size"} == {
+        k: v for k, v in MAP_OPTIONS.items() if k != "batch_size"}
+
+
+def test_warm_started_budget_covers_half_the_online_filter_s_pairs_at_its_floor():
+    from ot_filter.amortised import AmortisedMap, MapConfig
+    from ot_filter.experiments.amortised import WARM_OPTIONS, warm_options
+
+    def sized(state_dim, batch_size):  # warm_options reads the map's sizes only
+        config = MapConfig("dynamic", state_dim, state_dim, 64, 1, "relu", False, 10, batch_size, 1e-4, 1.0, 1e-3,
+                           1.0, True)
+        return AmortisedMap(None, None, config, {})
+
+    # The online filter's floor: 64 iterations of ot()'s batch (128 at n = 2, 1024 at n = 10).
+    # n = 2: half of 64 x 128 pairs is 16 iterations of 256, below the measured (128, 32): kept.
+    assert warm_options(sized(2, 256), "dynamic") == WARM_OPTIONS["dynamic"] == {"num_iterations": (128, 32)}
+    # n = 10: 32,768 pairs, 64 iterations of the map's 512 (128 of 256); first stays 4 x floor.
+    assert warm_options(sized(10, 512), "dynamic") == {"num_iterations": (256, 64)}
+    assert warm_options(sized(10, 256), "dynamic") == {"num_iterations": (512, 128)}
+    assert warm_options(sized(3, 256), "lorenz63") == WARM_OPTIONS["lorenz63"]
+
+
 @pytest.mark.long
 def test_restarted_steps_start_from_the_offline_map_every_time(trained):
     trained_map, _, _ = trained

@@ -31,7 +31,8 @@ from ot_filter.updates.amortised import amortised_ot
 
 # The map: width 64 and mini-batches of 256 pairs from 8 ensembles (measured on the static
 # example at n = 10: width 32 / batch 128 gives W1 0.37, width 64 0.21, width 64 and batch 256
-# 0.16 for one update; offline the cost is paid once).
+# 0.16 for one update; offline the cost is paid once). Above n = 4 the batch grows with n
+# (``map_options``).
 MAP_OPTIONS = {"width": 64, "batch_size": 256, "ensembles_per_batch": 8}
 # Three rounds (EnKF forecasts, then twice the amortised filter's own) of 7,000 iterations. On the
 # dynamic example (n = 2, 10 simulations, W1 to the exact marginals) the map gave (a) 0.58 with
@@ -67,11 +68,57 @@ LABELS = {"amortised": "amortised OT (a): no training online",
           "amortised_warm": "amortised OT (b): a few iterations a step"}
 
 
+def experiment_dim(experiment: str, dim: int) -> int:
+    """The state dimension of an experiment's model (Lorenz-63: 3)."""
+    return dim if experiment == "dynamic" else 3
+
+
 def map_name(experiment: str, dim: int | None = None, observed: Sequence[int] | None = None) -> str:
     """``dynamic-n10``, ``lorenz63-obs0,2``: what a map is trained for (checked at load)."""
     if experiment == "dynamic":
         return f"dynamic-n{dim}"
     return f"lorenz63-obs{','.join(str(i) for i in observed)}"
+
+
+def map_options(dim: int) -> dict:
+    """``MAP_OPTIONS`` for state dimension ``dim``: the mini-batch is half the online update's
+    (``ot()``'s ``default_sizes``: 32 n^2 pairs, 128 to 1024), at least 256. The pairs seen per
+    iteration are the lever in n (as for ``ot()``); half of ot()'s keeps one candidate's offline
+    training within about 5 minutes on one core. Measured on the dynamic example at n = 10 (W1,
+    10 simulations; the plain candidate, one training seed): batches of 512 instead of 256 took
+    303 s instead of 239 s and gave (b), with ``warm_options``, 0.269-0.286 over 3 filter keys
+    against 0.304-0.321 (the online filter 0.269-0.287), and 0.258 and 0.276 against 0.291 and
+    0.292 on two other sets of truths (online 0.241, 0.279); (a) 0.520 against 0.482 on the
+    first truths, 0.370 and 0.378 against 0.456 and 0.489 on the others
+    (``benchmarks/results/amortised_ot/warm_n10_keys.json``). At n <= 4 (and on Lorenz-63) it
+    is 256, as before."""
+    from ot_filter.updates.ot import default_sizes
+
+    return dict(MAP_OPTIONS, batch_size=max(MAP_OPTIONS["batch_size"], default_sizes(dim)[1] // 2))
+
+
+def warm_options(trained: AmortisedMap, experiment: str) -> dict:
+    """(b)'s options for ``trained``: ``WARM_OPTIONS[experiment]``; on the dynamic example with
+    at least as many pairs a step, at the schedule's floor, as half the online filter's
+    (``OT_FILTER_OPTIONS``' floor of 64 iterations on ot()'s batch for n), in the map's
+    batches: (128, 32) at n = 2 (the measured schedule; half the online filter's would be 16
+    iterations), (256, 64) at n = 10 with the map's batch of 512. Measured at n = 10 (the
+    table's truths, 3 filter keys; the online filter 0.269-0.287): with the batch-256 map
+    (128, 32) gave W1 0.326-0.361 and (256, 64) 0.304-0.321, and more did not help on the first
+    key ((512, 128) 0.306, (1024, 64) 0.309); with the batch-512 map (128, 32) gave 0.304-0.307
+    and (256, 64) 0.269-0.286."""
+    options = dict(WARM_OPTIONS[experiment])
+    if experiment == "dynamic":
+        from ot_filter.experiments.dynamic_example import OT_FILTER_OPTIONS
+        from ot_filter.updates.ot import default_sizes
+
+        online_floor = OT_FILTER_OPTIONS["num_iterations"][1]
+        pairs = online_floor * default_sizes(trained.config.state_dim)[1] // 2
+        first, floor = options["num_iterations"]
+        floor_needed = -(-pairs // trained.config.batch_size)
+        if floor_needed > floor:
+            options["num_iterations"] = (first * floor_needed // floor, floor_needed)
+    return options
 
 
 def experiment_model(experiment: str, dim: int = 2, observed: Sequence[int] = (0, 2)):
@@ -90,7 +137,7 @@ def experiment_model(experiment: str, dim: int = 2, observed: Sequence[int] = (0
 def train_experiment_map(key: jax.Array, experiment: str, dim: int = 2, observed: Sequence[int] = (0, 2),
                          num_particles: int = 1000, **overrides) -> tuple[AmortisedMap, list[TrainingHistory]]:
     """Offline training of an experiment's map (``OFFLINE`` and ``MAP_OPTIONS``, overridable)."""
-    options = dict(OFFLINE[experiment], **MAP_OPTIONS)
+    options = dict(OFFLINE[experiment], **map_options(experiment_dim(experiment, dim)))
     options.update(overrides)
     return train_amortised(key, experiment_model(experiment, dim, observed), model_name=map_name(experiment, dim, observed),
                            num_particles=num_particles, **options)
@@ -145,7 +192,8 @@ def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: 
     those options (``options.json``); reloaded from there if it was trained with the same ones,
     refused if with others (a stale map would be ranked against fresh ones). The record holds the
     settings, not ``key``: a stored map is an artefact that later runs reuse whatever their key."""
-    record = json.loads(json.dumps({**OFFLINE[experiment], **MAP_OPTIONS, **options, "num_particles": num_particles}))
+    record = json.loads(json.dumps({**OFFLINE[experiment], **map_options(experiment_dim(experiment, dim)), **options,
+                                    "num_particles": num_particles}))
     if os.path.exists(os.path.join(where, "map.json")):
         options_file = os.path.join(where, "options.json")
         stored = None
@@ -180,8 +228,8 @@ def history_arrays(histories: list[TrainingHistory]) -> dict:
 
 
 def amortised_updates(trained: AmortisedMap, experiment: str) -> dict:
-    """``{"amortised": (a), "amortised_warm": (b)}`` (b with ``WARM_OPTIONS[experiment]``)."""
-    return {"amortised": amortised_ot(trained), "amortised_warm": amortised_ot(trained, **WARM_OPTIONS[experiment])}
+    """``{"amortised": (a), "amortised_warm": (b)}`` (b with ``warm_options``)."""
+    return {"amortised": amortised_ot(trained), "amortised_warm": amortised_ot(trained, **warm_options(trained, experiment))}
 
 
 def run_amortised_dynamic(key: jax.Array, trained: AmortisedMap, dim: int, num_particles: int = 1000,
