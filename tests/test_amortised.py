@@ -289,6 +289,16 @@ def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256():
         k: v for k, v in MAP_OPTIONS.items() if k != "batch_size"}
 
 
+def test_the_dynamic_example_s_bank_grows_with_the_dimension():
+    from ot_filter.experiments.amortised import OFFLINE, offline_options
+
+    # 15 n simulations of 20 steps (300 ensembles per coordinate), at least 50; Lorenz-63 as OFFLINE.
+    assert [offline_options("dynamic", n)["num_simulations"] for n in (1, 2, 3, 4, 10)] == [50, 50, 50, 60, 150]
+    assert {k: v for k, v in offline_options("dynamic", 10).items() if k != "num_simulations"} == {
+        k: v for k, v in OFFLINE["dynamic"].items() if k != "num_simulations"}
+    assert offline_options("lorenz63", 3) == OFFLINE["lorenz63"]
+
+
 def test_warm_started_budget_covers_half_the_online_filter_s_pairs_at_its_floor():
     from ot_filter.amortised import AmortisedMap, MapConfig
     from ot_filter.experiments.amortised import WARM_OPTIONS, warm_options
