@@ -292,10 +292,13 @@ def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256():
 def test_the_dynamic_example_s_bank_grows_with_the_dimension():
     from ot_filter.experiments.amortised import OFFLINE, offline_options
 
-    # 15 n simulations of 20 steps (300 ensembles per coordinate), at least 50; Lorenz-63 as OFFLINE.
-    assert [offline_options("dynamic", n)["num_simulations"] for n in (1, 2, 3, 4, 10)] == [50, 50, 50, 60, 150]
-    assert {k: v for k, v in offline_options("dynamic", 10).items() if k != "num_simulations"} == {
-        k: v for k, v in OFFLINE["dynamic"].items() if k != "num_simulations"}
+    # 15 n simulations of 20 steps (300 ensembles per coordinate), at least 50; above n = 4 a
+    # fourth round of 7,000 iterations; Lorenz-63 as OFFLINE.
+    assert [offline_options("dynamic", n)["num_simulations"] for n in (1, 2, 3, 4, 5, 10)] == [50, 50, 50, 60, 75, 150]
+    assert [offline_options("dynamic", n)["rounds"] for n in (1, 2, 4, 5, 10)] == [3, 3, 3, 4, 4]
+    assert [offline_options("dynamic", n)["num_iterations"] for n in (2, 4, 5, 10)] == [21_000, 21_000, 28_000, 28_000]
+    assert offline_options("dynamic", 2) == OFFLINE["dynamic"]
+    assert offline_options("dynamic", 10)["num_steps"] == OFFLINE["dynamic"]["num_steps"]
     assert offline_options("lorenz63", 3) == OFFLINE["lorenz63"]
 
 
