@@ -131,8 +131,8 @@ def run_demo(out: str, seed: int = 0) -> dict:
 # Measured with 30 steps (whole demo wall time; global filter's step; its W1): 1024: 167 s, 2.7 s,
 # 0.28; 256: 131 s, 0.7 s, 0.33; 128: 113 s, 0.36 s, 0.51 (benchmarks/results/demo_batch/). The
 # chapter's 20 steps (t <= 2) since: 97 s, then 59 s with the compiled programs cached; a third
-# to a half of a first run is XLA compiling (the two OT filters 11-15 s each). With the filters
-# side by side on the cores and LLVM level 1 (README): 60 s, then 49 s.
+# to a half of a first run is XLA compiling (the two OT filters 11-15 s each). With LLVM level 1
+# (CPU_COMPILER_OPTIONS): 91 s, then 53 s (README: the filters in threads gave 60 s, not kept).
 BIMODAL_DEMO = dict(dim=10, num_particles=500, num_steps=20, num_simulations=1, ot_options={"batch_size": 256})
 
 
@@ -145,8 +145,7 @@ def _bimodal_demo(out: str, seed: int) -> dict:
 
     labels = {"enkf": "EnKF", "sir": "SIR", "ot": "OT (global)", "local_ot": "OT (localised)"}
     start = time.perf_counter()
-    result = run_dynamic_example(jax.random.key(seed), methods=tuple(labels), keep=1, side_by_side=True,
-                                 **BIMODAL_DEMO)
+    result = run_dynamic_example(jax.random.key(seed), methods=tuple(labels), keep=1, **BIMODAL_DEMO)
     summary, arrays = result["metrics"], result["arrays"]
     metrics = {labels[name]: {"w1": summary[name]["exact"]["w1"]["mean"],
                               "w1_worst_coordinate": summary[name]["exact"]["w1_max"]["mean"],
@@ -316,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--quick", action="store_true", help="small settings: under two minutes on 2 cores")
     run.add_argument("--no-progress", action="store_true", help="no progress bar or step reports")
     demo = commands.add_parser("demo", help="Lorenz-63 with EnKF and SIR, and the bimodal example where the OT "
-                                            "filters hold both modes (about 1 minute)")
+                                            "filters hold both modes (about 1.5 minutes; 1 once compiled)")
     demo.add_argument("--out", default="ot-filter-demo", help="output directory")
     demo.add_argument("--seed", type=int, default=0)
     gallery = commands.add_parser("gallery", help="every experiment with --quick; figures into --out")

@@ -14,7 +14,6 @@ import jax
 import pytest
 
 import ot_filter as otf
-from ot_filter.experiments._common import run_side_by_side
 
 CHILD = textwrap.dedent(
     """
@@ -128,59 +127,3 @@ def test_simulations_are_padded_to_the_devices_and_cut_back():
     assert out["devices"] == 2 and out["shape"] == [5, 20, 3], out
     # Separate programs round differently over 20 chaotic cycles; far below the filter's error.
     assert out["diff"] < 1e-3 and out["total_diff"] < 1e-5, out
-
-
-SIDE_BY_SIDE_CHILD = textwrap.dedent(
-    """
-    import json, threading
-    from ot_filter.cli import _use_every_cpu_core
-    _use_every_cpu_core()  # what the CLI does before JAX starts
-    import jax, numpy as np
-    import ot_filter as otf
-    from ot_filter.experiments._common import run_side_by_side
-    from ot_filter.experiments.dynamic_example import dynamic_model, filter_simulations, simulate_truths
-
-    model = dynamic_model(2)
-    _, observations = simulate_truths(jax.random.key(0), model, 10, 1)
-    updates = [otf.enkf(), otf.sir(), otf.enkf(perturbed=False), otf.sir(ess_threshold=1.0)]
-    seen = []
-
-    def task(index, update):
-        def run(device):
-            seen.append((str(device), threading.get_ident()))
-            return filter_simulations(jax.random.key(index), model, update, observations, 200, device=device)
-        return run
-
-    tasks = [task(i, u) for i, u in enumerate(updates)]
-    side = run_side_by_side(tasks)
-    alone = [t(jax.devices()[0]) for t in tasks]  # one after the other, on one device
-    print(json.dumps({
-        "devices": len(jax.devices()), "used": sorted({d for d, _ in seen[:4]}),
-        "threads": len({t for _, t in seen[:4]}),
-        "diff": max(float(np.max(np.abs(s[0] - a[0]))) for s, a in zip(side, alone)),
-        "shapes": [list(s[0].shape) for s in side],
-    }))
-    """
-)
-
-
-def test_methods_run_side_by_side_on_the_devices():
-    # Four filters of one simulation on 2 host devices: two at a time, each on a device of its
-    # own, in threads; each gives what it gives run alone on one device (the same program).
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
-    code = "import os; os.cpu_count = lambda: 2\n" + SIDE_BY_SIDE_CHILD
-    child = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
-    assert child.returncode == 0, child.stderr[-3000:]
-    out = json.loads(child.stdout.strip().splitlines()[-1])
-    assert out["devices"] == 2 and len(out["used"]) == 2 and out["threads"] == 2, out
-    assert out["shapes"] == [[1, 10, 200, 2]] * 4, out
-    assert out["diff"] == 0.0, out
-
-
-def test_side_by_side_on_one_device_runs_in_turn():
-    if len(jax.devices()) > 1:
-        pytest.skip("this process has several devices")
-    order = []
-    assert run_side_by_side([lambda d, i=i: order.append(i) or d for i in range(3)]) == [None] * 3
-    assert order == [0, 1, 2]

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import os
-import queue
 import time
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Callable, Sequence
 
@@ -124,33 +122,6 @@ def compile_and_run(function: Callable, *args, shard: bool = True) -> tuple[obje
     if count is not None:
         output = jax.tree.map(lambda leaf: leaf[:count], output)
     return jax.tree.map(np.asarray, output), {"compile_s": compile_s, "run_s": run_s}
-
-
-def run_side_by_side(tasks: Sequence[Callable]) -> list:
-    """``[task(device) for task in tasks]``, with as many tasks at once as there are devices, each
-    on a device of its own (threads: XLA compiles and runs without holding the GIL). On one
-    device, or for one task, one after the other with ``device=None``.
-
-    For independent programs too few to fill the devices by sharding, e.g. the demo's one
-    simulation filtered by four methods on a 2-core CPU: sharding one simulation pads it with a
-    copy, so the second core would filter the copy. Each task's own timings are then measured
-    while the others run on the other devices."""
-    devices = jax.devices()
-    if len(devices) == 1 or len(tasks) <= 1:
-        return [task(None) for task in tasks]
-    free = queue.Queue()
-    for device in devices:
-        free.put(device)
-
-    def on_a_free_device(task):
-        device = free.get()
-        try:
-            return task(device)
-        finally:
-            free.put(device)
-
-    with ThreadPoolExecutor(len(devices)) as pool:
-        return list(pool.map(on_a_free_device, tasks))
 
 
 def _devices_of(leaf) -> set:

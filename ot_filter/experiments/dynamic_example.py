@@ -34,7 +34,7 @@ import numpy as np
 import optax
 
 from ot_filter.experiments._common import (
-    ALL_METHODS, METHODS, compile_and_run, make_updates, run_side_by_side, save_figure, simulate_truths, stats,
+    ALL_METHODS, METHODS, compile_and_run, make_updates, save_figure, simulate_truths, stats,
 )
 from ot_filter.filtering import run_filter
 from ot_filter.metrics import compare_to_product_grid, mmd, mmd_to_product, product_grid_sample
@@ -83,21 +83,15 @@ def exact_posteriors(observations):
     return jax.vmap(squared_observation_filter)(observations)
 
 
-def filter_simulations(key, model, update, observations, num_particles: int, num_active=None, progress: int = 0,
-                       device=None):
+def filter_simulations(key, model, update, observations, num_particles: int, num_active=None, progress: int = 0):
     """Runs ``update``'s filter on every simulation (vmapped; over ``num_active`` too if it is an
-    array of particle counts, with a padded particle axis of ``num_particles``). ``device``: run
-    every simulation there (None: shard them over the devices, ``compile_and_run``).
+    array of particle counts, with a padded particle axis of ``num_particles``).
 
     Returns ``(particles[..., S, T, N, n], log_weights[..., S, T, N], info, timing)``, timing with
     compile and run seconds measured separately.
     """
     num_simulations = observations.shape[0]
     keys = jax.random.split(key, num_simulations)
-    if device is not None:
-        keys, observations = jax.device_put((keys, observations), device)
-        num_active = None if num_active is None else jax.device_put(jnp.asarray(num_active), device)
-    shard = device is None
 
     def one(k, y, active):
         extra = {} if active is None else {"num_active": active}
@@ -106,13 +100,13 @@ def filter_simulations(key, model, update, observations, num_particles: int, num
 
     if num_active is None:
         function = jax.vmap(lambda k, y: one(k, y, None))
-        outputs, timing = compile_and_run(function, keys, observations, shard=shard)
+        outputs, timing = compile_and_run(function, keys, observations)
     else:
         # lax.map over the counts (one compiled program), vmap over simulations inside.
         function = lambda counts, k, y: jax.lax.map(  # noqa: E731
             lambda active: jax.vmap(lambda kk, yy: one(kk, yy, active))(k, y), counts
         )
-        outputs, timing = compile_and_run(function, jnp.asarray(num_active), keys, observations, shard=shard)
+        outputs, timing = compile_and_run(function, jnp.asarray(num_active), keys, observations)
     particles, log_weights, info = outputs
     return particles, log_weights, info, timing
 
@@ -290,7 +284,6 @@ def run_dynamic_example(
     keep: int = 1,
     progress: int = 0,
     extra_updates: dict | None = None,
-    side_by_side: bool = False,
 ) -> dict:
     """Filters ``num_simulations`` independent trajectories with every method; measures MMD to the
     exact posterior at every time.
@@ -307,9 +300,6 @@ def run_dynamic_example(
       progress: report every this many steps to ``ot_filter.progress`` listeners (0: off).
       extra_updates: ``{name: update}`` run after the named methods on the same truths (e.g. an
         amortised OT filter, ``experiments/amortised.py``).
-      side_by_side: the methods run at the same time, each on a device of its own, every
-        simulation of a method on its device (``run_side_by_side``; for fewer simulations than
-        devices). Each method's timings are then measured while others run.
 
     Returns:
       ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``.
@@ -344,12 +334,11 @@ def run_dynamic_example(
               "grid": np.asarray(reference.grid[0]), "exact_masses": np.asarray(reference.masses[:keep])}
     summary["floor"] = _exact_summary(exact_floor(compare_key, num_particles, reference), first_step, prefix="floor_")
     filtered = {}
-    tasks = [partial(filter_simulations, jax.random.fold_in(filter_key, index), model, update, observations,
-                     num_particles, progress=progress) for index, update in enumerate(updates.values())]
-    runs = run_side_by_side(
-        [lambda device, task=task: task(device=device) for task in tasks]
-    ) if side_by_side else [task() for task in tasks]
-    for name, (particles, log_weights, info, timing) in zip(updates, runs):
+    for index, (name, update) in enumerate(updates.items()):
+        particles, log_weights, info, timing = filter_simulations(
+            jax.random.fold_in(filter_key, index), model, update, observations, num_particles,
+            progress=progress,
+        )
         distances = mmd_to_exact(particles, log_weights, reference, bandwidth, standardise)
         positive = positive_mass(particles, log_weights)
         summary[name] = _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, info)
