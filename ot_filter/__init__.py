@@ -41,7 +41,8 @@ __version__ = "0.2.4"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run d
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
 #                       0.2.3: the dynamic example's amortised maps train on a bank that grows with n, and
 #                       above n = 4 a fourth round
-#                       0.2.4: the experiments compile at XLA's LLVM level 1 on a CPU (results round differently)
+#                       0.2.4: the experiments compile at XLA's LLVM level 1 on a CPU (results round differently);
+#                       the offline candidates train at once, a worker process each
 
 __all__ = [
     "BayesUpdate",

@@ -493,3 +493,27 @@ def test_context_features_tell_a_two_mode_prior_from_a_gaussian_and_carry_the_sc
     assert np.all(np.asarray(normaliser.scale) > 0)
     assert conditioning(jnp.zeros((7, 2)), jnp.ones(5)).shape == (7, 7)
     assert conditioning(jnp.zeros((7, 2)), None).shape == (7, 2)
+
+
+@pytest.mark.long  # two worker processes (each imports JAX and compiles) and the same training in turn
+def test_candidates_trained_in_worker_processes_are_the_candidates_trained_in_turn(tmp_path):
+    # map_for trains the offline candidates at once, a process each (two threads of one process
+    # hung in XLA's CPU runtime); the maps and the choice are those of training them in turn.
+    from ot_filter.amortised import load_map
+    from ot_filter.experiments.amortised import map_for
+
+    small = dict(num_particles=40, num_iterations=60, num_simulations=4)
+    maps = {}
+    for workers in (True, False):
+        directory = tmp_path / f"workers-{workers}"
+        kept, histories = map_for(str(directory), jax.random.key(5), "dynamic", 2, workers=workers, **small)
+        assert (histories is None) == workers  # a worker's curves are in its history.npz
+        selection = kept.info["selection"]
+        assert 0 < selection["offline_wall_seconds"] < 3600
+        maps[workers] = (selection, {label: load_map(directory / "candidates" / label)
+                                     for label in ("plain", "enkf_layer")})
+        assert (directory / "candidates" / "plain" / "history.npz").exists()
+    assert maps[True][0]["chosen"] == maps[False][0]["chosen"]
+    for label in ("plain", "enkf_layer"):
+        for got, want in zip(jax.tree.leaves(maps[True][1][label].params), jax.tree.leaves(maps[False][1][label].params)):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)

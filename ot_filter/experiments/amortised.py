@@ -18,7 +18,12 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
+import subprocess
+import sys
+import tempfile
+import time
 from typing import Sequence
 
 import jax
@@ -170,7 +175,7 @@ def train_experiment_map(key: jax.Array, experiment: str, dim: int = 2, observed
 
 
 def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, observed: Sequence[int] = (0, 2),
-            num_particles: int = 1000, candidates: dict | None = None,
+            num_particles: int = 1000, candidates: dict | None = None, workers: bool | None = None,
             **overrides) -> tuple[AmortisedMap, list[TrainingHistory] | None]:
     """The map stored in ``directory`` if there is one (checked against the experiment), else
     the best of the ``candidates`` (default ``CANDIDATES``; ``overrides`` apply to all of them
@@ -178,7 +183,13 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     reloaded from there if trained with the same options: an interrupted offline stage resumes),
     kept by ``select_map`` on held-out simulated truths of the filter's model and stored in
     ``directory`` with the scores and the whole offline cost in its ``info["selection"]``: a
-    later run reuses it. Histories: the kept candidate's rounds (None when it was reloaded)."""
+    later run reuses it. Histories: the kept candidate's rounds (None when it was reloaded).
+
+    ``workers``: train the candidates at once, each in a process of its own on one core
+    (``candidate_worker``; their histories are then None, their curves in ``history.npz``).
+    None: when JAX computes on the CPU and it has a core for each candidate to train.
+    ``offline_seconds`` in the record sums the candidates' training and scoring times,
+    ``offline_wall_seconds`` is the stage's wall time."""
     name = map_name(experiment, dim, observed)
     model = experiment_model(experiment, dim, observed)
     state_dim = jax.eval_shape(model.sample_initial, key).shape[0]
@@ -193,6 +204,14 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     scoring = dict(num_simulations=check_int("num_simulations", offline["num_simulations"], minimum=2),
                    num_steps=offline["num_steps"], num_particles=num_particles,
                    skip_steps=offline["num_steps"] // 10)
+    started = time.perf_counter()
+    pending = [label for label in candidates
+               if not os.path.exists(os.path.join(directory, "candidates", label, "map.json"))]
+    if workers is None:
+        workers = jax.default_backend() == "cpu" and len(pending) <= (os.cpu_count() or 1)
+    if workers and len(pending) > 1:
+        _train_in_workers({label: (os.path.join(directory, "candidates", label), dict(overrides, **candidates[label]))
+                           for label in pending}, key, experiment, dim, observed, num_particles)
     trained, histories = {}, {}
     for label, options in candidates.items():
         trained[label], histories[label] = _candidate(os.path.join(directory, "candidates", label), key, experiment,
@@ -200,7 +219,8 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     chosen, scores = select_map(jax.random.fold_in(key, SELECTION_FOLD), model, trained, **scoring)
     selection = {"chosen": chosen, "scores": {label: score.record() for label, score in scores.items()},
                  "offline_seconds": sum(one.info["seconds"] for one in trained.values())
-                 + sum(score.seconds for score in scores.values())}
+                 + sum(score.seconds for score in scores.values()),
+                 "offline_wall_seconds": time.perf_counter() - started}
     kept = trained[chosen]._replace(info=dict(trained[chosen].info, selection=selection))
     save_map(directory, kept)
     history, stored = (os.path.join(directory, "candidates", chosen, "history.npz"),
@@ -210,6 +230,44 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     elif os.path.exists(stored):  # an earlier map's curves
         os.remove(stored)
     return kept, histories[chosen]
+
+
+def _train_in_workers(jobs: dict, key: jax.Array, experiment: str, dim: int, observed: Sequence[int],
+                      num_particles: int) -> None:
+    """Every ``{label: (where, options)}`` candidate trained at once by ``candidate_worker``
+    processes, one XLA CPU device each, single-threaded (the CLI's setting per core)."""
+    flags = [flag for flag in os.environ.get("XLA_FLAGS", "").split()
+             if flag.startswith("--")
+             and not flag.startswith(("--xla_force_host_platform_device_count", "--xla_cpu_multi_thread_eigen"))]
+    environment = dict(os.environ, XLA_FLAGS=" ".join(flags + ["--xla_cpu_multi_thread_eigen=false"]))
+    with tempfile.TemporaryDirectory() as scratch:
+        running = {}
+        try:
+            for label, (where, options) in jobs.items():
+                path = os.path.join(scratch, f"{label}.pickle")
+                with open(path, "wb") as handle:
+                    pickle.dump({"where": where, "key_data": np.asarray(jax.random.key_data(key)),
+                                 "experiment": experiment, "dim": dim, "observed": tuple(observed),
+                                 "num_particles": num_particles, "options": options}, handle)
+                log = open(os.path.join(scratch, f"{label}.log"), "w")
+                running[label] = (subprocess.Popen(
+                    [sys.executable, "-m", "ot_filter.experiments.candidate_worker", path],
+                    env=environment, stdout=log, stderr=subprocess.STDOUT), log)
+            failed = {}
+            for label, (process, log) in running.items():
+                if process.wait() != 0:
+                    log.close()
+                    with open(log.name) as handle:
+                        failed[label] = handle.read()[-2000:]
+        finally:
+            for process, log in running.values():
+                if process.poll() is None:
+                    process.kill()
+                    process.wait()
+                log.close()
+    if failed:
+        raise RuntimeError("offline candidates failed in their worker processes: "
+                           + "; ".join(f"{label}: {text}" for label, text in failed.items()))
 
 
 def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: Sequence[int], num_particles: int,
