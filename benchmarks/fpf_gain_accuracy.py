@@ -1,6 +1,6 @@
 """Accuracy of the kernel (diffusion-map) FPF gain vs the particle count N, in 1-D, against exact gains.
 
-    XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" taskset -c 1 \
+    XLA_FLAGS="--xla_cpu_multi_thread_eigen=false" taskset -c 1 \
         /work/venv/bin/python benchmarks/fpf_gain_accuracy.py [--quick] [--out benchmarks/results/fpf_gain_accuracy]
 
 Two densities with h(x) = x (observation noise 1), where the exact gain K = phi' is known:

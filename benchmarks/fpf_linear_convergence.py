@@ -1,6 +1,6 @@
 """Feedback particle filter (constant gain) vs the Kalman-Bucy filter on the Ornstein-Uhlenbeck model.
 
-    XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \\
+    XLA_FLAGS="--xla_cpu_multi_thread_eigen=false" \\
         taskset -c 0 /work/venv/bin/python benchmarks/fpf_linear_convergence.py [--quick]
         [--out benchmarks/results/fpf_linear_convergence]     (--quick: < 1 minute, to .../quick)
 

@@ -144,7 +144,7 @@ def host_devices_for_cpu_cores() -> None:
         os.environ["XLA_FLAGS"] = (
             os.environ.get("XLA_FLAGS", "")
             + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
-            + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+            + " --xla_cpu_multi_thread_eigen=false"
         ).strip()
 
 

@@ -18,11 +18,7 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import shutil
-import subprocess
-import sys
-import tempfile
 import time
 from typing import Sequence
 
@@ -30,6 +26,7 @@ import jax
 import numpy as np
 
 from ot_filter.amortised import AmortisedMap, TrainingHistory, load_map, save_map, select_map, train_amortised
+from ot_filter.experiments import processes
 from ot_filter.experiments._common import save_figure, write_text_atomic
 from ot_filter.lib.validation import check_int
 from ot_filter.updates.amortised import amortised_ot
@@ -186,7 +183,7 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     later run reuses it. Histories: the kept candidate's rounds (None when it was reloaded).
 
     ``workers``: train the candidates at once, each in a process of its own on one core
-    (``candidate_worker``; their histories are then None, their curves in ``history.npz``).
+    (``processes``; their histories are then None, their curves in ``history.npz``).
     None: when JAX computes on the CPU and it has a core for each candidate to train.
     ``offline_seconds`` in the record sums the candidates' training and scoring times,
     ``offline_wall_seconds`` is the stage's wall time."""
@@ -234,40 +231,18 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
 
 def _train_in_workers(jobs: dict, key: jax.Array, experiment: str, dim: int, observed: Sequence[int],
                       num_particles: int) -> None:
-    """Every ``{label: (where, options)}`` candidate trained at once by ``candidate_worker``
-    processes, one XLA CPU device each, single-threaded (the CLI's setting per core)."""
-    flags = [flag for flag in os.environ.get("XLA_FLAGS", "").split()
-             if flag.startswith("--")
-             and not flag.startswith(("--xla_force_host_platform_device_count", "--xla_cpu_multi_thread_eigen"))]
-    environment = dict(os.environ, XLA_FLAGS=" ".join(flags + ["--xla_cpu_multi_thread_eigen=false"]))
-    with tempfile.TemporaryDirectory() as scratch:
-        running = {}
-        try:
-            for label, (where, options) in jobs.items():
-                path = os.path.join(scratch, f"{label}.pickle")
-                with open(path, "wb") as handle:
-                    pickle.dump({"where": where, "key_data": np.asarray(jax.random.key_data(key)),
-                                 "experiment": experiment, "dim": dim, "observed": tuple(observed),
-                                 "num_particles": num_particles, "options": options}, handle)
-                log = open(os.path.join(scratch, f"{label}.log"), "w")
-                running[label] = (subprocess.Popen(
-                    [sys.executable, "-m", "ot_filter.experiments.candidate_worker", path],
-                    env=environment, stdout=log, stderr=subprocess.STDOUT), log)
-            failed = {}
-            for label, (process, log) in running.items():
-                if process.wait() != 0:
-                    log.close()
-                    with open(log.name) as handle:
-                        failed[label] = handle.read()[-2000:]
-        finally:
-            for process, log in running.values():
-                if process.poll() is None:
-                    process.kill()
-                    process.wait()
-                log.close()
-    if failed:
-        raise RuntimeError("offline candidates failed in their worker processes: "
-                           + "; ".join(f"{label}: {text}" for label, text in failed.items()))
+    """Every ``{label: (where, options)}`` candidate trained at once, each in a worker process
+    (``processes``) that stores it in ``where``."""
+    key_data = np.asarray(jax.random.key_data(key))
+    processes.run({label: ("ot_filter.experiments.amortised:_candidate_in_process",
+                           {"where": where, "key_data": key_data, "experiment": experiment, "dim": dim,
+                            "observed": tuple(observed), "num_particles": num_particles, "options": options})
+                   for label, (where, options) in jobs.items()})
+
+
+def _candidate_in_process(where: str, key_data: np.ndarray, **arguments) -> None:
+    """``_candidate`` in a worker process (the key travels as its data; the map stays on disk)."""
+    _candidate(where, jax.random.wrap_key_data(key_data), **arguments)
 
 
 def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: Sequence[int], num_particles: int,

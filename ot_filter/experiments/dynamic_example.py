@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ot_filter.experiments import processes
 from ot_filter.experiments._common import (
     ALL_METHODS, METHODS, compile_and_run, make_updates, save_figure, simulate_truths, stats,
 )
@@ -83,9 +84,11 @@ def exact_posteriors(observations):
     return jax.vmap(squared_observation_filter)(observations)
 
 
-def filter_simulations(key, model, update, observations, num_particles: int, num_active=None, progress: int = 0):
+def filter_simulations(key, model, update, observations, num_particles: int, num_active=None, progress: int = 0,
+                       shard: bool = True):
     """Runs ``update``'s filter on every simulation (vmapped; over ``num_active`` too if it is an
-    array of particle counts, with a padded particle axis of ``num_particles``).
+    array of particle counts, with a padded particle axis of ``num_particles``); ``shard``: over
+    the devices (``compile_and_run``).
 
     Returns ``(particles[..., S, T, N, n], log_weights[..., S, T, N], info, timing)``, timing with
     compile and run seconds measured separately.
@@ -100,13 +103,13 @@ def filter_simulations(key, model, update, observations, num_particles: int, num
 
     if num_active is None:
         function = jax.vmap(lambda k, y: one(k, y, None))
-        outputs, timing = compile_and_run(function, keys, observations)
+        outputs, timing = compile_and_run(function, keys, observations, shard=shard)
     else:
         # lax.map over the counts (one compiled program), vmap over simulations inside.
         function = lambda counts, k, y: jax.lax.map(  # noqa: E731
             lambda active: jax.vmap(lambda kk, yy: one(kk, yy, active))(k, y), counts
         )
-        outputs, timing = compile_and_run(function, jnp.asarray(num_active), keys, observations)
+        outputs, timing = compile_and_run(function, jnp.asarray(num_active), keys, observations, shard=shard)
     particles, log_weights, info = outputs
     return particles, log_weights, info, timing
 
@@ -284,6 +287,7 @@ def run_dynamic_example(
     keep: int = 1,
     progress: int = 0,
     extra_updates: dict | None = None,
+    in_processes: Sequence[str] = (),
 ) -> dict:
     """Filters ``num_simulations`` independent trajectories with every method; measures MMD to the
     exact posterior at every time.
@@ -300,12 +304,20 @@ def run_dynamic_example(
       progress: report every this many steps to ``ot_filter.progress`` listeners (0: off).
       extra_updates: ``{name: update}`` run after the named methods on the same truths (e.g. an
         amortised OT filter, ``experiments/amortised.py``).
+      in_processes: named methods filtered at the same time as the others, each in a worker
+        process on a core of its own (``processes``; a CPU backend; ``ot_options`` must then
+        pickle); the methods run here then keep to one device, leaving the workers their cores.
+        Same keys as without, so the same results up to rounding.
 
     Returns:
       ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``.
     """
     if num_steps < 1 or num_simulations < 1:
         raise ValueError("num_steps and num_simulations must be >= 1")
+    in_processes = tuple(in_processes)
+    strays = [name for name in in_processes if name not in methods]
+    if strays:
+        raise ValueError(f"in_processes {strays} are not among the methods {list(methods)}")
     model = dynamic_model(dim)
     # Localised methods are told that the coordinates are independent (radius 0: own y only).
     updates = {}
@@ -318,6 +330,15 @@ def run_dynamic_example(
     truth_key, filter_key, reference_key = jax.random.split(key, 3)
     compare_key = jax.random.fold_in(reference_key, 1)
     states, observations = simulate_truths(truth_key, model, num_steps, num_simulations)
+    filter_keys = {name: jax.random.fold_in(filter_key, index) for index, name in enumerate(updates)}
+    started = processes.start({name: ("ot_filter.experiments.dynamic_example:_filter_in_process", {
+        "method": name, "dim": dim, "ot_options": ot_options, "key_data": np.asarray(jax.random.key_data(filter_keys[name])),
+        "observations": np.asarray(observations), "num_particles": num_particles}) for name in in_processes})
+    try:
+        filtered_here = _filter_here(updates, in_processes, filter_keys, model, observations, num_particles, progress)
+        filtered_there = started.results()
+    finally:
+        started.stop()
     reference = exact_posteriors(observations)
     exact_positive = exact_positive_mass(reference)
     first_step = max(0, int(round(average_from / TIME_STEP)) - 1)
@@ -334,11 +355,8 @@ def run_dynamic_example(
               "grid": np.asarray(reference.grid[0]), "exact_masses": np.asarray(reference.masses[:keep])}
     summary["floor"] = _exact_summary(exact_floor(compare_key, num_particles, reference), first_step, prefix="floor_")
     filtered = {}
-    for index, (name, update) in enumerate(updates.items()):
-        particles, log_weights, info, timing = filter_simulations(
-            jax.random.fold_in(filter_key, index), model, update, observations, num_particles,
-            progress=progress,
-        )
+    for name in updates:
+        particles, log_weights, info, timing = {**filtered_here, **filtered_there}[name]
         distances = mmd_to_exact(particles, log_weights, reference, bandwidth, standardise)
         positive = positive_mass(particles, log_weights)
         summary[name] = _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, info)
@@ -360,6 +378,21 @@ def run_dynamic_example(
             reference_key, model, observations, filtered, sir_reference, bandwidth, first_step, exact_positive
         )
     return {"metrics": summary, "arrays": arrays}
+
+
+def _filter_here(updates, in_processes, keys, model, observations, num_particles, progress) -> dict:
+    """``filter_simulations`` of the updates not run in worker processes (on one device if
+    there are workers)."""
+    return {name: filter_simulations(keys[name], model, update, observations, num_particles, progress=progress,
+                                     shard=not in_processes)
+            for name, update in updates.items() if name not in in_processes}
+
+
+def _filter_in_process(method: str, dim: int, ot_options, key_data, observations, num_particles: int):
+    """``filter_simulations`` of a named method in a worker process (``in_processes``)."""
+    model = dynamic_model(dim)
+    update = make_updates((method,), ot_options, OT_FILTER_OPTIONS, model=model, radius=0.0)[method]
+    return filter_simulations(jax.random.wrap_key_data(key_data), model, update, observations, num_particles)
 
 
 def _against_sir_reference(key, model, observations, filtered, num_reference, bandwidth, first_step, exact):
