@@ -266,7 +266,9 @@ def test_overrides_may_not_set_what_the_candidates_differ_by(tmp_path):
     from ot_filter.experiments.amortised import map_for
 
     with pytest.raises(ValueError, match=r"overrides \['enkf_layer'\] are what the candidates"):
-        map_for(str(tmp_path / "map"), jax.random.key(0), "dynamic", enkf_layer=True)
+        map_for(str(tmp_path / "map"), jax.random.key(0), "lorenz63", enkf_layer=True)
+    with pytest.raises(ValueError, match=r"overrides \['training_fold'\] are what the candidates"):
+        map_for(str(tmp_path / "map"), jax.random.key(0), "dynamic", training_fold=2)
     assert not (tmp_path / "map").exists()  # refused before anything was trained
     # A network option (also one of MAP_OPTIONS) may be overridden: a candidate stored with the
     # defaults is then stale, and refused before anything is trained.
@@ -511,9 +513,14 @@ def test_candidates_trained_in_worker_processes_are_the_candidates_trained_in_tu
         selection = kept.info["selection"]
         assert 0 < selection["offline_wall_seconds"] < 3600
         maps[workers] = (selection, {label: load_map(directory / "candidates" / label)
-                                     for label in ("plain", "enkf_layer")})
+                                     for label in ("plain", "plain_second_training")})
         assert (directory / "candidates" / "plain" / "history.npz").exists()
     assert maps[True][0]["chosen"] == maps[False][0]["chosen"]
-    for label in ("plain", "enkf_layer"):
+    for label in ("plain", "plain_second_training"):
         for got, want in zip(jax.tree.leaves(maps[True][1][label].params), jax.tree.leaves(maps[False][1][label].params)):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    # The dynamic example's second candidate is the plain map trained from fold_in(key, 1).
+    folded, _ = map_for(str(tmp_path / "folded"), jax.random.fold_in(jax.random.key(5), 1), "dynamic", 2,
+                        candidates={"plain": {}}, **small)
+    for got, want in zip(jax.tree.leaves(folded.params), jax.tree.leaves(maps[False][1]["plain_second_training"].params)):
+        np.testing.assert_array_equal(got, want)
