@@ -141,11 +141,12 @@ def _bimodal_demo(out: str, seed: int) -> dict:
     n = 10: the OT filters against EnKF and SIR, scored by W1 to the exact filter."""
     import jax
 
+    from ot_filter.experiments import processes
     from ot_filter.experiments.dynamic_example import run_dynamic_example
 
     labels = {"enkf": "EnKF", "sir": "SIR", "ot": "OT (global)", "local_ot": "OT (localised)"}
     # The global OT filter in a worker process on the second core, beside the others here.
-    in_processes = ("ot",) if jax.default_backend() == "cpu" and (os.cpu_count() or 1) > 1 else ()
+    in_processes = ("ot",) if jax.default_backend() == "cpu" and processes.available_cores() > 1 else ()
     start = time.perf_counter()
     result = run_dynamic_example(jax.random.key(seed), methods=tuple(labels), keep=1, in_processes=in_processes,
                                  **BIMODAL_DEMO)

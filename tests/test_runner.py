@@ -175,11 +175,12 @@ def test_an_amortised_map_is_trained_once_stored_in_the_run_and_reused_by_a_late
     from ot_filter.runner.catalogue import cell_key
 
     resumed = tmp_path / "resumed"
-    shutil.copytree(stored / "candidates" / "plain", resumed / "candidates" / "plain")
+    for label in candidates:
+        shutil.copytree(stored / "candidates" / label, resumed / "candidates" / label)
     same = dict(num_particles=40, num_steps=3, num_iterations=60)
-    again, histories = map_for(str(resumed), cell_key(0, 999_983), "dynamic", candidates={"plain": {}}, **same)
-    assert histories is None and again.info["selection"]["chosen"] == "plain"
-    for got, want in zip(jax.tree.leaves(again.params), jax.tree.leaves(candidates["plain"].params)):
+    again, histories = map_for(str(resumed), cell_key(0, 999_983), "dynamic", **same)
+    assert histories is None and again.info["selection"]["chosen"] == selection["chosen"]
+    for got, want in zip(jax.tree.leaves(again.params), jax.tree.leaves(candidates[selection["chosen"]].params)):
         np.testing.assert_array_equal(got, want)
     # A candidate trained with other options is refused, not ranked against fresh ones.
     stale = tmp_path / "stale"

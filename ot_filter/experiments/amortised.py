@@ -186,7 +186,7 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
             **overrides) -> tuple[AmortisedMap, list[TrainingHistory] | None]:
     """The map stored in ``directory`` if there is one (checked against the experiment), else
     the best of the ``candidates`` (default ``DYNAMIC_CANDIDATES`` on the dynamic example,
-    else ``CANDIDATES``; a candidate's ``training_fold``: trained from ``fold_in(key, fold)``; ``overrides`` apply to all of them
+    else ``CANDIDATES``; a candidate's ``training_fold`` k > 0: trained from ``fold_in(key, k)``; ``overrides`` apply to all of them
     and may not set what a candidate sets), each trained into ``directory/candidates/LABEL`` (or
     reloaded from there if trained with the same options: an interrupted offline stage resumes),
     kept by ``select_map`` on held-out simulated truths of the filter's model and stored in
@@ -209,6 +209,12 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     if clash:
         raise ValueError(f"overrides {clash} are what the candidates {sorted(candidates)} differ by; pass "
                          "candidates={...} instead")
+    for label, options in candidates.items():
+        if "training_fold" in options:
+            fold = check_int(f"candidates[{label!r}]['training_fold']", options["training_fold"], minimum=0)
+            if fold == SELECTION_FOLD:
+                raise ValueError(f"candidates[{label!r}]['training_fold'] may not be {SELECTION_FOLD}: that key draws "
+                                 "the held-out truths")
     offline = dict(offline_options(experiment, dim), **overrides)
     scoring = dict(num_simulations=check_int("num_simulations", offline["num_simulations"], minimum=2),
                    num_steps=offline["num_steps"], num_particles=num_particles,
@@ -217,7 +223,7 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     pending = [label for label in candidates
                if not os.path.exists(os.path.join(directory, "candidates", label, "map.json"))]
     if workers is None:
-        workers = jax.default_backend() == "cpu" and len(pending) <= (os.cpu_count() or 1)
+        workers = jax.default_backend() == "cpu" and len(pending) <= processes.available_cores()
     if workers and len(pending) > 1:
         _train_in_workers({label: (os.path.join(directory, "candidates", label), dict(overrides, **candidates[label]))
                            for label in pending}, key, experiment, dim, observed, num_particles)
@@ -275,9 +281,10 @@ def _candidate(where: str, key: jax.Array, experiment: str, dim: int, observed: 
             raise ValueError(f"the candidate map in {where} was trained with other options ({stored}, not "
                              f"{record}): remove it to train it again")
         return load_map(where, model=map_name(experiment, dim, observed)), None
+    options = dict(options)
     fold = options.pop("training_fold", 0)
     if fold:  # another training of the same settings (a candidate against training variance)
-        key = jax.random.fold_in(key, check_int("training_fold", fold, minimum=0))
+        key = jax.random.fold_in(key, fold)
     trained, histories = train_experiment_map(key, experiment, dim, observed, num_particles, **options)
     # The options first: a run stopped between the two files leaves options without a map (trained
     # again), never a map without its options (refused).

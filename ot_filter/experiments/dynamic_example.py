@@ -305,9 +305,9 @@ def run_dynamic_example(
       extra_updates: ``{name: update}`` run after the named methods on the same truths (e.g. an
         amortised OT filter, ``experiments/amortised.py``).
       in_processes: named methods filtered at the same time as the others, each in a worker
-        process on a core of its own (``processes``; a CPU backend; ``ot_options`` must then
-        pickle); the methods run here then keep to one device, leaving the workers their cores.
-        Same keys as without, so the same results up to rounding.
+        process (``processes``; JAX on the CPU; ``ot_options`` must then pickle; no progress
+        reports from them); the methods run here then keep to one device, leaving the workers
+        the other cores. Same keys as without, so the same results up to rounding.
 
     Returns:
       ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``.
@@ -318,6 +318,8 @@ def run_dynamic_example(
     strays = [name for name in in_processes if name not in methods]
     if strays:
         raise ValueError(f"in_processes {strays} are not among the methods {list(methods)}")
+    if in_processes and jax.default_backend() != "cpu":
+        raise ValueError(f"in_processes needs JAX on the CPU (the workers compute there), not {jax.default_backend()}")
     model = dynamic_model(dim)
     # Localised methods are told that the coordinates are independent (radius 0: own y only).
     updates = {}

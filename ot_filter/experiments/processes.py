@@ -5,11 +5,14 @@
 works meanwhile and collects the return values with ``Started.results()``. Arguments and return
 values travel pickled, so they are NumPy arrays and plain data (a PRNG key as its
 ``jax.random.key_data``). Each worker's JAX has one single-threaded CPU device (the CLI's setting
-per core, ``_common.host_devices_for_cpu_cores``) and the caller's precision (x64 or not).
+per core, ``_common.host_devices_for_cpu_cores``), the caller's precision (x64 or not) and
+compilation cache, and this copy of ``ot_filter``. Workers run in sessions of their own, so a
+Ctrl-C at the terminal reaches the caller only (which stops them, or lets them finish).
 
 Processes, not threads: two programs run at once from two threads of one process hung in XLA's
 CPU runtime (two offline maps trained at n = 10: three tries of three); processes share nothing.
-Meant for a CPU backend: a worker would start a JAX of its own on an accelerator.
+Workers compute on the CPU (``JAX_PLATFORMS=cpu``): on an accelerator each would start a JAX of
+its own and claim the device's memory.
 """
 
 from __future__ import annotations
@@ -17,11 +20,19 @@ from __future__ import annotations
 import importlib
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from typing import NamedTuple
+
+
+def available_cores() -> int:
+    """The cores this process may run on (``taskset`` respected where the OS tells)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def worker_environment(environ=os.environ) -> dict:
@@ -30,7 +41,21 @@ def worker_environment(environ=os.environ) -> dict:
     flags = [flag for flag in environ.get("XLA_FLAGS", "").split()
              if flag.startswith("--")
              and not flag.startswith(("--xla_force_host_platform_device_count", "--xla_cpu_multi_thread_eigen"))]
-    return dict(environ, XLA_FLAGS=" ".join(flags + ["--xla_cpu_multi_thread_eigen=false"]))
+    return dict(environ, XLA_FLAGS=" ".join(flags + ["--xla_cpu_multi_thread_eigen=false"]), JAX_PLATFORMS="cpu")
+
+
+def _caller_settings(environment: dict) -> dict:
+    """``environment`` with the caller's JAX precision and compilation cache (set with
+    ``jax.config``, which a child process does not inherit) and this ``ot_filter`` first on the
+    path."""
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        environment["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"
+        if jax.config.jax_compilation_cache_dir:
+            environment["JAX_COMPILATION_CACHE_DIR"] = jax.config.jax_compilation_cache_dir
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    environment["PYTHONPATH"] = os.pathsep.join(filter(None, [root, environment.get("PYTHONPATH")]))
+    return environment
 
 
 class Started(NamedTuple):
@@ -52,7 +77,7 @@ class Started(NamedTuple):
                     del waiting[label]
                     if process.returncode != 0:
                         log.flush()
-                        with open(log.name) as handle:
+                        with open(log.name, errors="replace") as handle:
                             failed[label] = handle.read()[-2000:]
                 time.sleep(0.05)
             values = {}
@@ -68,10 +93,14 @@ class Started(NamedTuple):
         return values
 
     def stop(self) -> None:
-        """Kills the workers still running and removes the scratch directory."""
+        """Kills the workers still running (with whatever they started) and removes the
+        scratch directory."""
         for process, log, _ in self.running.values():
             if process.poll() is None:
-                process.kill()
+                try:
+                    os.killpg(process.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
                 process.wait()
             log.close()
         self.scratch.cleanup()
@@ -79,23 +108,27 @@ class Started(NamedTuple):
 
 def start(jobs: dict) -> Started:
     """Launches every ``{label: ("module:function", kwargs)}`` job in a worker process."""
+    for label, (target, _) in jobs.items():
+        if not label.isidentifier():
+            raise ValueError(f"job label {label!r} must be an identifier (it names the worker's files)")
+        if ":" not in target:
+            raise ValueError(f"job {label!r}: target {target!r} is not 'module:function'")
     scratch = tempfile.TemporaryDirectory(prefix="ot_filter_workers_")
-    environment = worker_environment()
-    jax = sys.modules.get("jax")
-    if jax is not None and jax.config.jax_enable_x64:  # the workers compute in the caller's precision
-        environment["JAX_ENABLE_X64"] = "1"
+    environment = _caller_settings(worker_environment())
     running = {}
     try:
         for label, (target, kwargs) in jobs.items():
-            if ":" not in target:
-                raise ValueError(f"job {label!r}: target {target!r} is not 'module:function'")
             arguments = os.path.join(scratch.name, f"{label}.in.pickle")
             result = os.path.join(scratch.name, f"{label}.out.pickle")
             with open(arguments, "wb") as handle:
                 pickle.dump((target, kwargs), handle)
             log = open(os.path.join(scratch.name, f"{label}.log"), "w")
-            process = subprocess.Popen([sys.executable, "-m", __name__, arguments, result],
-                                       env=environment, stdout=log, stderr=subprocess.STDOUT)
+            try:
+                process = subprocess.Popen([sys.executable, "-m", __name__, arguments, result], env=environment,
+                                           stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+            except BaseException:
+                log.close()
+                raise
             running[label] = (process, log, result)
     except BaseException:
         Started(running, scratch).stop()
@@ -106,6 +139,16 @@ def start(jobs: dict) -> Started:
 def run(jobs: dict) -> dict:
     """``start(jobs).results()``: every job at once, waited for."""
     return start(jobs).results()
+
+
+def _jax_settings() -> dict:
+    """What a worker's JAX runs with (a diagnostic, which the tests use)."""
+    import jax
+
+    import ot_filter
+
+    return {"x64": bool(jax.config.jax_enable_x64), "cache": jax.config.jax_compilation_cache_dir,
+            "backend": jax.default_backend(), "package": os.path.dirname(ot_filter.__file__)}
 
 
 def main(arguments: str, result: str) -> None:
