@@ -124,7 +124,11 @@ def start(jobs: dict) -> Started:
                 pickle.dump((target, kwargs), handle)
             log = open(os.path.join(scratch.name, f"{label}.log"), "w")
             try:
-                process = subprocess.Popen([sys.executable, "-m", __name__, arguments, result], env=environment,
+                # -P: the working directory does not go first on the path (a checkout there would
+                # shadow the caller's installed ot_filter); PYTHONPATH puts the caller's first.
+                safe_path = ["-P"] if sys.version_info >= (3, 11) else []
+                process = subprocess.Popen([sys.executable, *safe_path, "-m", __name__, arguments, result],
+                                           env=environment,
                                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
             except BaseException:
                 log.close()
