@@ -285,7 +285,7 @@ def test_overrides_may_not_set_what_the_candidates_differ_by(tmp_path):
         map_for(str(tmp_path / "widened"), jax.random.key(0), "dynamic", candidates={"plain": {}}, width=16)
 
 
-def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256():
+def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256_and_averaged_above_n_4():
     from ot_filter.experiments.amortised import MAP_OPTIONS, map_options
     from ot_filter.updates.ot import default_sizes
 
@@ -293,7 +293,9 @@ def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256():
     assert [default_sizes(n)[1] for n in (2, 3, 4, 5, 10, 50)] == [128, 256, 512, 1024, 1024, 1024]
     assert [map_options(n)["batch_size"] for n in (1, 2, 3, 4, 5, 10, 50)] == [256] * 4 + [512] * 3
     assert {k: v for k, v in map_options(10).items() if k != "batch_size"} == {
-        k: v for k, v in MAP_OPTIONS.items() if k != "batch_size"}
+        **{k: v for k, v in MAP_OPTIONS.items() if k != "batch_size"}, "average_chunks": 20}
+    # the iterates' average where it was measured (above n = 4), the last iterate below
+    assert [map_options(n).get("average_chunks", 0) for n in (2, 4, 5, 10)] == [0, 0, 20, 20]
 
 
 def test_the_dynamic_example_s_bank_grows_with_the_dimension():
@@ -456,6 +458,34 @@ def test_seeds_trained_together_are_the_maps_each_seed_trains_alone(x64):
     gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(leaves(maps[0].params), leaves(maps[1].params)))
     assert gap > 1e-2
     assert histories[0][0].validation_loss[-1] != histories[1][0].validation_loss[-1]
+
+
+def test_an_averaged_map_is_the_mean_of_its_last_iterates():
+    # Chunks are deterministic and keyed by their index, so 3 chunks of a 4-chunk training are
+    # the 3-chunk training: averaging the last 2 of 4 is the mean of the two trainings' maps.
+    # One chunk averaged is the last iterate, and the recorded J is the returned map's.
+    options = dict(model_name="scalar-lg", num_simulations=6, num_steps=10, num_particles=100, rounds=1,
+                   width=8, batch_size=32, ensembles_per_batch=4)
+    key = jax.random.key(5)
+    three, _ = train_amortised(key, scalar_model(), num_iterations=150, chunks=3, **options)
+    four, four_histories = train_amortised(key, scalar_model(), num_iterations=200, chunks=4, **options)
+    averaged, averaged_histories = train_amortised(key, scalar_model(), num_iterations=200, chunks=4,
+                                                   average_chunks=2, **options)
+    last, _ = train_amortised(key, scalar_model(), num_iterations=200, chunks=4, average_chunks=1, **options)
+    leaves = jax.tree.leaves
+    for mean, a, b, one, plain in zip(leaves(averaged.params), leaves(three.params), leaves(four.params),
+                                      leaves(last.params), leaves(four.params)):
+        np.testing.assert_allclose(mean, (a + b) / 2, rtol=1e-6, atol=1e-7)
+        np.testing.assert_array_equal(one, plain)
+    assert max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(leaves(three.params), leaves(four.params))) > 1e-3
+    assert averaged.info["averaged_chunks"] == 2 and four.info["averaged_chunks"] == 0
+    # the curves are the iterates' either way; the final J is the returned map's
+    np.testing.assert_array_equal(averaged_histories[0].validation_loss, four_histories[0].validation_loss)
+    assert last.info["final_validation_loss"] == pytest.approx(float(four_histories[0].validation_loss[-1]), rel=1e-6)
+    assert averaged.info["final_validation_loss"] != pytest.approx(four.info["final_validation_loss"], rel=1e-6)
+    for bad, match in [(5, "average_chunks must be at most chunks = 4"), (-1, "average_chunks")]:
+        with pytest.raises(ValueError, match=match):
+            train_amortised(key, scalar_model(), num_iterations=200, chunks=4, average_chunks=bad, **options)
 
 
 def test_seed_batches_are_checked():
