@@ -176,9 +176,11 @@ def test_run_filter_with_ot_update():
 def test_default_sizes_grow_with_the_state_dimension_and_give_way_to_given_ones():
     from ot_filter.updates.ot import default_sizes
 
-    # 32 n^2 rounded to a power of two in [128, 1024]; width 64 above n = 2 (the chapter's sizes).
-    assert [default_sizes(n) for n in (1, 2, 3, 4, 10, 50)] == [
-        (32, 128), (32, 128), (64, 256), (64, 512), (64, 1024), (64, 1024)]
+    # 32 n^2 rounded to a power of two in [128, 1024]; width 32 at n <= 2 (the chapter's sizes),
+    # above that 5 n rounded to a power of two in [64, 256].
+    assert [default_sizes(n) for n in (1, 2, 3, 4, 10, 18, 19, 36, 37, 50, 400)] == [
+        (32, 128), (32, 128), (64, 256), (64, 512), (64, 1024), (64, 1024), (128, 1024), (128, 1024),
+        (256, 1024), (256, 1024), (256, 1024)]
 
     def hidden_widths(state):
         # the residual block's square kernels, one per network

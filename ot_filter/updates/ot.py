@@ -232,7 +232,8 @@ def ot(
         from the state dimension at ``init`` (``default_sizes``: 128 at n <= 2, up to 1024).
       inner_steps: T optimiser steps per outer iteration.
       width, num_blocks, activation: the networks (both f and T); activation in
-        ``transport.ACTIVATIONS``; width None: chosen like the batch (32 at n <= 2, else 64).
+        ``transport.ACTIVATIONS``; width None: chosen like the batch (32 at n <= 2, 64 up to
+        n = 18, 128 up to 36, then 256).
       enkf_layer: precede T by the EnKF layer: True or ``"perturbed"``, x + K (y - Y^i);
         ``"deterministic"``, m + K (y - mean Y) + A (x - m) with A the Gaussian OT map to the
         Kalman posterior covariance (no observation-perturbation noise: ``transport/saddle.py``).
@@ -350,11 +351,19 @@ def default_sizes(n: int) -> tuple[int, int]:
     seen per iteration are the lever, and one pair carries n coordinates' worth of conditioning
     to learn: the batch grows as 32 n^2 (128 at n = 2, the chapter's setting) up to 1024. Beyond
     that nothing measured helps at n = 10 (two seeds: 0.099 with the rule, 0.105 with batches of
-    2048, 0.111 with 20,000 iterations). At n = 50 the global map stays at the EnKF's level (W1
-    0.42-0.49) and width 128 is no better (0.568 against 0.494 on the same seed): use
-    ``local_ot`` there.
+    2048, 0.111 with 20,000 iterations).
+
+    The width grows with n too, as 5 n rounded to a power of two, from 64 up to 256 (64 to
+    n = 18, 128 from 19 to 36, 256 from 37). Measured on a GPU (NVIDIA H200, the same two seeds
+    for each line, batch 1024; ``benchmarks/gpu_checks.py``, records in
+    ``benchmarks/results/gpu/``): at n = 50 widths 64, 128, 256 and 384 give 0.472, 0.332,
+    0.155 and 0.163 (the floor 0.036; the EnKF 0.425, SIR 0.930), the worst coordinate 1.30,
+    1.30, 0.29 and 0.35; batches of 2048 give 0.492 at width 64 and 0.138 at 384. At n = 20 width
+    256 gives 0.140 and 384 0.157, against 0.161 with 64 (on the CPU); at n = 10 384 gives 0.146
+    against 0.110 with 64. A wide network needs the large batch: width 384 with batches of 384
+    (the authors' sizes) gives 0.895 at n = 50.
     """
-    width = 32 if n <= 2 else 64
+    width = 32 if n <= 2 else int(min(max(1 << int(round(math.log2(5 * n))), 64), 256))
     batch = 1 << int(round(math.log2(min(max(32 * n * n, 128), 1024))))
     return width, batch
 
