@@ -5,7 +5,8 @@ JSON-lines file as soon as it is measured (a run cut short keeps what it measure
         [--out results.jsonl] [--sizes '[[n, width, batch], ...]'] [--ot-options '{...}'] [--smoke]
     PYTHONPATH=. python benchmarks/gpu_checks.py --part figure --records a.jsonl,b.jsonl --out width.png
 
-- iterations: the OT update's cost at the sizes ``ot()`` picks (global n = 2, 10, 50; localised
+- iterations: the OT update's cost at the sizes ``ot()`` picks (global n = 2, 10, 50, recorded in
+  ``sizes``: the rule changes; localised
   n = 2, 50) and at the authors' width 384 with batches of 384 (global, n = 50): seconds of one
   update of ``k`` and ``2 k`` outer iterations after compilation (static example, N = 1000), so
   that the training loop's seconds per iteration (the difference) and the once-per-update work
@@ -14,8 +15,10 @@ JSON-lines file as soon as it is measured (a run cut short keeps what it measure
 - static50: the static example at n = 50 (lambda_w = 0.4, y = 1, N = 1000, 2 seeds), W1 per
   coordinate to the exact posterior: the global ``ot()`` with its defaults, with the authors'
   width 384 and batches of 384, and with width 384 and batches of 1024; the localised update.
+  With ``--sizes``, the global update at each given [n, width, batch] instead (any n).
 - dynamic50: the dynamic example at n = 50 (N = 1000, 10 simulations, 20 steps): EnKF, SIR, the
-  global OT filter (never run at n = 50 on the CPU) and the localised one.
+  global OT filter (never run at n = 50 on the CPU) and the localised one; with
+  ``--ot-options``, the global filter alone with those options.
 - candidates: the offline stage's candidate maps under ``--maps`` (training seconds, rounds,
   iterations), after ``benchmarks/amortised_ot.py`` trained them.
 - figure: W1 against the width from the static records in ``--records`` (a PNG to ``--out``).
@@ -66,6 +69,8 @@ def seconds_of_update(update, dim: int, repeats: int = 2) -> tuple[float, float]
 
 
 def iterations(out: str, smoke: bool) -> None:
+    from ot_filter.updates.ot import default_sizes
+
     count = 20 if smoke else 400
     dims = (2, 5) if smoke else (2, 10, 50)
     cases = [(f"ot n={d}", d, lambda k, d=d, **o: otf.ot(num_iterations=k, **o), {}) for d in dims]
@@ -79,7 +84,9 @@ def iterations(out: str, smoke: bool) -> None:
         two, _ = seconds_of_update(build(2 * count, **options), dim)
         per_iteration = max(two - one, 1e-9) / count
         overhead = max(one - count * per_iteration, 0.0)
-        emit(out, {"part": "iterations", "case": label, "dim": dim, "options": options,
+        used = (dict(zip(("width", "batch_size"), default_sizes(dim)), **options) if label.startswith("ot")
+                else None)  # local_ot's sizes are its own (width 32, batch 128), never the rule's
+        emit(out, {"part": "iterations", "case": label, "dim": dim, "options": options, "sizes": used,
                    "iterations_timed": [count, 2 * count], "seconds": [one, two],
                    "seconds_per_iteration": per_iteration, "iterations_per_s": 1 / per_iteration,
                    "per_update_overhead_s": overhead, "compile_s": compile_s,
@@ -114,7 +121,8 @@ def static50(out: str, smoke: bool, sizes: list | None = None) -> None:
 
 def dynamic50(out: str, smoke: bool, ot_options: dict | None = None) -> None:
     """``ot_options``: the global OT filter's options (then it alone runs)."""
-    from ot_filter.experiments.dynamic_example import run_dynamic_example
+    from ot_filter.experiments.dynamic_example import OT_FILTER_OPTIONS, run_dynamic_example
+    from ot_filter.updates.ot import default_sizes
 
     dim, simulations, steps = (5, 2, 12) if smoke else (50, 10, 20)
     runs = [("ot",), ("enkf", "sir", "local_ot")] if ot_options is None else [("ot",)]
@@ -125,7 +133,11 @@ def dynamic50(out: str, smoke: bool, ot_options: dict | None = None) -> None:
                                       standardise=True, average_from=1.0, keep=0, ot_options=ot_options)["metrics"]
         for name in methods:
             exact = summary[name]["exact"]
-            emit(out, {"part": "dynamic", "case": name, "options": ot_options, "dim": dim,
+            # what the global filter ran: the experiment's options, ot()'s batch for n, the overrides
+            used = dict(OT_FILTER_OPTIONS, batch_size=default_sizes(dim)[1], **(ot_options or {}))
+            used = {k: v for k, v in used.items() if type(v) in (int, float, str, tuple)}  # not the optimisers
+            emit(out, {"part": "dynamic", "case": name, "options": ot_options,
+                       "sizes": used if name == "ot" else None, "dim": dim,
                        "simulations": simulations, "steps": steps,
                        "w1": exact["w1"]["mean"], "w1_stderr": exact["w1"]["stderr"],
                        "w1_worst_coordinate": exact["w1_max"]["mean"],
@@ -161,7 +173,8 @@ def figure(records: str, out: str) -> None:
     for dim in sorted({r["dim"] for r in static}):
         # "sizes": the width and batch used; records without it ran ot()'s rule of the time (width 64)
         points = sorted((r.get("sizes", {}).get("width") or r["options"].get("width", 64), r["w1"], r["w1_stderr"])
-                        for r in static if r["dim"] == dim and r["options"].get("batch_size", 1024) == 1024)
+                        for r in static if r["dim"] == dim
+                        and (r.get("sizes") or r["options"]).get("batch_size", 1024) == 1024)
         if not points:
             continue
         widths, w1, stderr = zip(*points)
@@ -201,7 +214,10 @@ def main():
     elif args.part == "static50":
         static50(args.out, args.smoke, json.loads(args.sizes) if args.sizes else None)
     elif args.part == "dynamic50":
-        dynamic50(args.out, args.smoke, json.loads(args.ot_options) if args.ot_options else None)
+        options = json.loads(args.ot_options) if args.ot_options else None
+        if options:  # JSON has no tuples: num_iterations=(first, floor)
+            options = {k: tuple(v) if isinstance(v, list) else v for k, v in options.items()}
+        dynamic50(args.out, args.smoke, options)
     else:
         iterations(args.out, args.smoke)
 

@@ -32,8 +32,8 @@ applied to the original particles. On the static example this halves the W1 erro
 does not hurt N = 1000 (benchmarks/static_example.py; also checked on a bimodal prior).
 
 Defaults (measured on the chapter's static example): ReLU, one residual block, width and
-mini-batch from the state dimension (``default_sizes``: 32 and 128 at n <= 2, the chapter's; width
-64 and up to 1024 pairs above), 10 T steps per f step, Adam(1e-3) on T and AdamW(3e-4, weight
+mini-batch from the state dimension (``default_sizes``: 32 and 128 at n <= 2, the chapter's; above
+that up to 1024 pairs, and width 64 growing to 128 from n = 19 and 256 from n = 37), 10 T steps per f step, Adam(1e-3) on T and AdamW(3e-4, weight
 decay 1) on f, 10,000 outer iterations (500 at the later, warm-started updates of a filter),
 smoothing factor 1. The authors' 1e-3 for f diverges after 2,000-4,000 iterations (J climbs, f's
 scale grows, the map collapses onto one mode); a weight-decayed f at 3e-4 is stable over the
