@@ -11,7 +11,9 @@ independent), SIR, the global OT update and the localised one (radius 0). Metric
 averaged over coordinates and its worst coordinate, and the joint sliced W2 and energy distance
 to N exact samples, each beside its Monte-Carlo floor (N exact samples scored the same way).
 
-- static: lambda_w = 0.4, y = 1, N = 1000, one update per seed (``--seeds``), library defaults.
+- static: lambda_w = 0.4, y = 1, N = 1000, one update per seed (``--seeds``), library defaults
+  (since 0.2.6 the global update's width grows with n: 256 at n = 50, most of an hour an update
+  on one CPU core; ``benchmarks/results/gpu/`` has that cell measured on a GPU).
 - dynamic: N = 1000, 20 steps, ``--simulations``, time average over t >= 1; OT with the dynamic
   experiment's filter options (``experiments.dynamic_example.OT_FILTER_OPTIONS``) for both OT
   updates.
