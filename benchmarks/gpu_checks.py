@@ -169,6 +169,8 @@ def figure(records: str, out: str) -> None:
     static = [r for r in rows if r["part"] == "static" and r["case"].startswith("ot")]
     with open("benchmarks/results/ot_dimension.json") as handle:
         cpu_rows = json.load(handle)["static"]
+    with open("benchmarks/results/ot_dimension_size_rule/sizes.json") as handle:
+        cpu_sizes = json.load(handle)
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for dim in sorted({r["dim"] for r in static}):
         # "sizes": the width and batch used; records without it ran ot()'s rule of the time (width 64)
@@ -182,9 +184,15 @@ def figure(records: str, out: str) -> None:
         floor = next(r["floor_w1"] for r in static if r["dim"] == dim)
         ax.axhline(floor, color=line[0].get_color(), linestyle=":", linewidth=1)
         cpu = next((row["ot"]["w1"] for row in cpu_rows if row["dim"] == dim), None)
-        if cpu is not None:  # the CPU sweep's global OT at width 64 (the same seeds)
-            ax.errorbar([64], [cpu["mean"]], yerr=[2 * cpu["stderr"]], marker="s", mfc="none", capsize=3,
-                        color=line[0].get_color(), linestyle="none", label=f"n = {dim}, width 64 on the CPU")
+        # the CPU sweep's global OT at width 64, and the CPU's other widths on the same 2 seeds
+        cpu_points = [(64, cpu["mean"], 2 * cpu["stderr"])] if cpu is not None else []
+        cpu_points += [(r["options"]["width"], r["w1"], 0.0) for r in cpu_sizes
+                       if r["dim"] == dim and r["seeds"] == 2 and r["options"].get("batch_size") == 1024
+                       and "width" in r["options"]]
+        if cpu_points:
+            widths, w1, error = zip(*sorted(cpu_points))
+            ax.errorbar(widths, w1, yerr=error, marker="s", mfc="none", capsize=3, color=line[0].get_color(),
+                        linestyle="none", label=f"n = {dim}, on the CPU")
     ax.set(xscale="log", xlabel="network width (batch 1024)", ylabel="W1 to the exact marginals (mean over coordinates)",
            title="Global OT update, static example (N = 1000, 2 seeds, ±2 s.e.)\ndotted: floor of N exact samples")
     enkf = next(row["enkf"]["w1"]["mean"] for row in cpu_rows if row["dim"] == max(r["dim"] for r in static))
