@@ -35,9 +35,9 @@ import os
 import time
 
 import jax
-import jax.numpy as jnp
 
 import ot_filter as otf
+from ot_dimension import seconds_of_update  # benchmarks/ (the script's folder)
 from ot_filter.models import squared_observation
 
 NUM_PARTICLES = 1000
@@ -49,23 +49,6 @@ def emit(out: str, record: dict) -> None:
     print(line, flush=True)
     with open(out, "a") as handle:
         handle.write(line + "\n")
-
-
-def seconds_of_update(update, dim: int, repeats: int = 2) -> tuple[float, float]:
-    """(best seconds of one jitted update after compilation, compile seconds) on the static example."""
-    model = squared_observation(dim=dim, noise=0.4, observation_scale=0.5, static=True)
-    prior = jax.vmap(model.sample_initial)(jax.random.split(jax.random.key(0), NUM_PARTICLES))
-    state = update.init(jax.random.key(1), prior, model)
-    apply = jax.jit(lambda key, state: update.apply(key, state, prior, jnp.ones(dim), model)[0])
-    start = time.perf_counter()
-    apply(jax.random.key(2), state).block_until_ready()
-    first = time.perf_counter() - start
-    times = []
-    for repeat in range(repeats):
-        start = time.perf_counter()
-        apply(jax.random.key(3 + repeat), state).block_until_ready()
-        times.append(time.perf_counter() - start)
-    return min(times), max(first - min(times), 0.0)
 
 
 def iterations(out: str, smoke: bool) -> None:
@@ -80,8 +63,8 @@ def iterations(out: str, smoke: bool) -> None:
     cases.append((f"ot n={dims[-1]} width 384 batch 384", dims[-1],
                   lambda k, **o: otf.ot(num_iterations=k, **o), {"width": 384, "batch_size": 384}))
     for label, dim, build, options in cases:
-        one, compile_s = seconds_of_update(build(count, **options), dim)
-        two, _ = seconds_of_update(build(2 * count, **options), dim)
+        one, compile_s = seconds_of_update(build(count, **options), dim, repeats=2)
+        two, _ = seconds_of_update(build(2 * count, **options), dim, repeats=2)
         per_iteration = max(two - one, 1e-9) / count
         overhead = max(one - count * per_iteration, 0.0)
         used = (dict(zip(("width", "batch_size"), default_sizes(dim)), **options) if label.startswith("ot")

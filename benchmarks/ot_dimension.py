@@ -85,31 +85,41 @@ def dynamic_rows(dims, simulations, steps, save=None, methods=METHODS):
     return rows
 
 
+def seconds_of_update(update, dim, repeats=3):
+    """(best seconds of one jitted update after compilation, compile seconds): the static example,
+    N = 1000 prior particles, y = 1."""
+    import jax.numpy as jnp
+
+    from ot_filter.models import squared_observation
+
+    model = squared_observation(dim=dim, noise=0.4, observation_scale=0.5, static=True)
+    prior = jax.vmap(model.sample_initial)(jax.random.split(jax.random.key(0), 1000))
+    state = update.init(jax.random.key(1), prior, model)
+    apply = jax.jit(lambda key, state: update.apply(key, state, prior, jnp.ones(dim), model)[0])
+    start = time.perf_counter()
+    apply(jax.random.key(2), state).block_until_ready()
+    first = time.perf_counter() - start
+    times = []
+    for repeat in range(repeats):
+        start = time.perf_counter()
+        apply(jax.random.key(3 + repeat), state).block_until_ready()
+        times.append(time.perf_counter() - start)
+    return min(times), max(first - min(times), 0.0)
+
+
 def cost_rows(dims, repeats=3):
     """Seconds of one update (static example, N = 1000, defaults) after compilation, best of
     ``repeats``, global and localised, every n in one run (ratios are what carry over)."""
-    import jax.numpy as jnp
-
     import ot_filter as otf
     from ot_filter.models import squared_observation
 
     rows = []
     for dim in dims:
-        model = squared_observation(dim=dim, noise=0.4, observation_scale=0.5, static=True)
-        prior = jax.vmap(model.sample_initial)(jax.random.split(jax.random.key(0), 1000))
+        geometry = squared_observation(dim=dim, static=True).geometry
         row = {"dim": dim}
-        for name, update in (("ot", otf.ot()), ("local_ot", otf.local_ot(otf.local_windows(model.geometry, 0.0)))):
-            state = update.init(jax.random.key(1), prior, model)
-            apply = jax.jit(lambda key, state: update.apply(key, state, prior, jnp.ones(dim), model)[0])
-            start = time.perf_counter()
-            apply(jax.random.key(2), state).block_until_ready()
-            first = time.perf_counter() - start
-            times = []
-            for repeat in range(repeats):
-                start = time.perf_counter()
-                apply(jax.random.key(3 + repeat), state).block_until_ready()
-                times.append(time.perf_counter() - start)
-            row[name] = {"seconds": min(times), "compile_s": max(first - min(times), 0.0)}
+        for name, update in (("ot", otf.ot()), ("local_ot", otf.local_ot(otf.local_windows(geometry, 0.0)))):
+            seconds, compile_s = seconds_of_update(update, dim, repeats)
+            row[name] = {"seconds": seconds, "compile_s": compile_s}
         rows.append(row)
         print(f"cost n={dim}: global {row['ot']['seconds']:.2f} s, localised {row['local_ot']['seconds']:.2f} s",
               flush=True)
