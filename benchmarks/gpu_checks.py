@@ -39,8 +39,15 @@ import jax
 import ot_filter as otf
 from ot_dimension import seconds_of_update  # benchmarks/ (the script's folder)
 from ot_filter.models import squared_observation
+from ot_filter.updates.ot import default_sizes
 
 NUM_PARTICLES = 1000
+
+
+def global_sizes(dim: int, options: dict) -> dict:
+    """The width and batch the global update ran: ``options`` over ``ot()``'s rule for ``dim``
+    (recorded: the rule changes)."""
+    return dict(zip(("width", "batch_size"), default_sizes(dim)), **options)
 
 
 def emit(out: str, record: dict) -> None:
@@ -52,8 +59,6 @@ def emit(out: str, record: dict) -> None:
 
 
 def iterations(out: str, smoke: bool) -> None:
-    from ot_filter.updates.ot import default_sizes
-
     count = 20 if smoke else 400
     dims = (2, 5) if smoke else (2, 10, 50)
     cases = [(f"ot n={d}", d, lambda k, d=d, **o: otf.ot(num_iterations=k, **o), {}) for d in dims]
@@ -67,8 +72,8 @@ def iterations(out: str, smoke: bool) -> None:
         two, _ = seconds_of_update(build(2 * count, **options), dim, repeats=2)
         per_iteration = max(two - one, 1e-9) / count
         overhead = max(one - count * per_iteration, 0.0)
-        used = (dict(zip(("width", "batch_size"), default_sizes(dim)), **options) if label.startswith("ot")
-                else None)  # local_ot's sizes are its own (width 32, batch 128), never the rule's
+        # local_ot's sizes are its own (width 32, batch 128), never the rule's
+        used = global_sizes(dim, options) if label.startswith("ot") else None
         emit(out, {"part": "iterations", "case": label, "dim": dim, "options": options, "sizes": used,
                    "iterations_timed": [count, 2 * count], "seconds": [one, two],
                    "seconds_per_iteration": per_iteration, "iterations_per_s": 1 / per_iteration,
@@ -79,8 +84,6 @@ def iterations(out: str, smoke: bool) -> None:
 def static50(out: str, smoke: bool, sizes: list | None = None) -> None:
     """``sizes``: [[n, width, batch], ...] of the global update instead of the default variants."""
     from ot_filter.experiments.static_example import run_static_example
-    from ot_filter.updates.ot import default_sizes
-
     dim, seeds = (5, 2) if smoke else (50, 2)
     # The untried settings first: the authors' width and batch (an hour an update on one core here).
     variants = [(dim, "ot width 384 batch 384", "ot", {"width": 384, "batch_size": 384}),
@@ -94,7 +97,7 @@ def static50(out: str, smoke: bool, sizes: list | None = None) -> None:
         start = time.perf_counter()
         summary = run_static_example(jax.random.key(2026), noise=0.4, num_particles=NUM_PARTICLES, num_seeds=seeds,
                                      dim=dim, methods=(method,), ot_options=options or None)["metrics"]
-        used = dict(zip(("width", "batch_size"), default_sizes(dim)), **options) if method == "ot" else None
+        used = global_sizes(dim, options) if method == "ot" else None
         emit(out, {"part": "static", "case": label, "dim": dim, "seeds": seeds, "options": options, "sizes": used,
                    "w1": summary[method]["w1"]["mean"], "w1_stderr": summary[method]["w1"]["stderr"],
                    "w1_worst_coordinate": summary[method]["w1_max"]["mean"],
@@ -105,7 +108,6 @@ def static50(out: str, smoke: bool, sizes: list | None = None) -> None:
 def dynamic50(out: str, smoke: bool, ot_options: dict | None = None) -> None:
     """``ot_options``: the global OT filter's options (then it alone runs)."""
     from ot_filter.experiments.dynamic_example import OT_FILTER_OPTIONS, run_dynamic_example
-    from ot_filter.updates.ot import default_sizes
 
     dim, simulations, steps = (5, 2, 12) if smoke else (50, 10, 20)
     runs = [("ot",), ("enkf", "sir", "local_ot")] if ot_options is None else [("ot",)]

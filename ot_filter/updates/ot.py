@@ -33,8 +33,8 @@ does not hurt N = 1000 (benchmarks/static_example.py; also checked on a bimodal 
 
 Defaults (measured on the chapter's static example): ReLU, one residual block, width and
 mini-batch from the state dimension (``default_sizes``: 32 and 128 at n <= 2, the chapter's; above
-that up to 1024 pairs, and width 64 growing to 128 from n = 19 and 256 from n = 37), 10 T steps per f step, Adam(1e-3) on T and AdamW(3e-4, weight
-decay 1) on f, 10,000 outer iterations (500 at the later, warm-started updates of a filter),
+that up to 1024 pairs, and width 64 growing to 128 from n = 19 and 256 from n = 37), 10 T steps
+per f step, Adam(1e-3) on T and AdamW(3e-4, weight decay 1) on f, 10,000 outer iterations (500 at the later, warm-started updates of a filter),
 smoothing factor 1. The authors' 1e-3 for f diverges after 2,000-4,000 iterations (J climbs, f's
 scale grows, the map collapses onto one mode); a weight-decayed f at 3e-4 is stable over the
 10,000 (at n = 2 it gives W1 0.075 against 0.087 for 1e-4, the same 3 seeds; at n = 10 with
@@ -358,12 +358,12 @@ def default_sizes(n: int) -> tuple[int, int]:
     for each line, batch 1024; ``benchmarks/gpu_checks.py``, records in
     ``benchmarks/results/gpu/``): at n = 50 widths 64, 128, 256 and 384 give 0.472, 0.332,
     0.155 and 0.163 (the floor 0.036; the EnKF 0.425, SIR 0.930), the worst coordinate 1.30,
-    1.30, 0.29 and 0.35; batches of 2048 give 0.492 at width 64 and 0.138 at 384. At n = 20 width
-    256 gives 0.140 and 384 0.157, against 0.161 with 64 (on the CPU); at n = 10 384 gives 0.146
-    against 0.110 with 64. A wide network needs the large batch: width 384 with batches of 384
+    1.30, 0.29 and 0.35; batches of 2048 give 0.492 at width 64 and 0.138 at 384. At n = 20
+    width 128 gives 0.126 (on the CPU), 256 0.140 and 384 0.157, against 0.161 with 64 (on the
+    CPU); at n = 10 384 gives 0.146 against 0.110 with 64 (on the CPU). A wide network needs the large batch: width 384 with batches of 384
     (the authors' sizes) gives 0.895 at n = 50.
     """
-    width = 32 if n <= 2 else int(min(max(1 << int(round(math.log2(5 * n))), 64), 256))
+    width = 32 if n <= 2 else min(max(1 << round(math.log2(5 * n)), 64), 256)
     batch = 1 << int(round(math.log2(min(max(32 * n * n, 128), 1024))))
     return width, batch
 
