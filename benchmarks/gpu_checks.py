@@ -2,7 +2,8 @@
 JSON-lines file as soon as it is measured (a run cut short keeps what it measured).
 
     PYTHONPATH=. python benchmarks/gpu_checks.py --part iterations|static50|dynamic50|candidates
-        [--out results.jsonl] [--sizes '[[n, width, batch], ...]'] [--ot-options '{...}'] [--smoke]
+        [--out results.jsonl] [--sizes '[[n, width, batch], ...]'] [--variants '[[n, {...}], ...]']
+        [--seeds S] [--ot-options '{...}'] [--smoke]
     PYTHONPATH=. python benchmarks/gpu_checks.py --part figure --records a.jsonl,b.jsonl --out width.png
 
 - iterations: the OT update's cost at the sizes ``ot()`` picks (global n = 2, 10, 50, recorded in
@@ -15,7 +16,9 @@ JSON-lines file as soon as it is measured (a run cut short keeps what it measure
 - static50: the static example at n = 50 (lambda_w = 0.4, y = 1, N = 1000, 2 seeds), W1 per
   coordinate to the exact posterior: the global ``ot()`` with its defaults, with the authors'
   width 384 and batches of 384, and with width 384 and batches of 1024; the localised update.
-  With ``--sizes``, the global update at each given [n, width, batch] instead (any n).
+  With ``--sizes``, the global update at each given [n, width, batch] instead (any n); with
+  ``--variants``, at each [n, {ot() options}] (any of ``ot()``'s arguments); ``--seeds``: the
+  number of seeds (2).
 - dynamic50: the dynamic example at n = 50 (N = 1000, 10 simulations, 20 steps): EnKF, SIR, the
   global OT filter (never run at n = 50 on the CPU) and the localised one; with
   ``--ot-options``, the global filter alone with those options.
@@ -81,18 +84,22 @@ def iterations(out: str, smoke: bool) -> None:
                    "default_update_s_estimate": overhead + 10_000 * per_iteration})
 
 
-def static50(out: str, smoke: bool, sizes: list | None = None) -> None:
-    """``sizes``: [[n, width, batch], ...] of the global update instead of the default variants."""
+def static50(out: str, smoke: bool, variants: list | None = None, seeds: int = 2) -> None:
+    """``variants``: [[n, {ot() options}], ...] of the global update instead of the default ones."""
     from ot_filter.experiments.static_example import run_static_example
-    dim, seeds = (5, 2) if smoke else (50, 2)
+    dim = 5 if smoke else 50
     # The untried settings first: the authors' width and batch (an hour an update on one core here).
-    variants = [(dim, "ot width 384 batch 384", "ot", {"width": 384, "batch_size": 384}),
+    defaults = [(dim, "ot width 384 batch 384", "ot", {"width": 384, "batch_size": 384}),
                 (dim, "ot", "ot", {}), (dim, "local_ot", "local_ot", {}),
                 (dim, "ot width 384 batch 1024", "ot", {"width": 384, "batch_size": 1024})]
-    if sizes:
-        variants = [(n, f"ot width {w} batch {b}", "ot", {"width": w, "batch_size": b}) for n, w, b in sizes]
+    if variants:
+        variants = [(n, " ".join(["ot"] + [f"{k} {v}" for k, v in options.items()]), "ot", options)
+                    for n, options in variants]
+    else:
+        variants = defaults
     if smoke:
-        variants = [(n, label, method, dict(options, num_iterations=50)) for n, label, method, options in variants]
+        variants = [(n if n < 10 else 5, label, method, dict(options, num_iterations=50))
+                    for n, label, method, options in variants]
     for dim, label, method, options in variants:
         start = time.perf_counter()
         summary = run_static_example(jax.random.key(2026), noise=0.4, num_particles=NUM_PARTICLES, num_seeds=seeds,
@@ -100,7 +107,7 @@ def static50(out: str, smoke: bool, sizes: list | None = None) -> None:
         used = global_sizes(dim, options) if method == "ot" else None
         emit(out, {"part": "static", "case": label, "dim": dim, "seeds": seeds, "options": options, "sizes": used,
                    "w1": summary[method]["w1"]["mean"], "w1_stderr": summary[method]["w1"]["stderr"],
-                   "w1_worst_coordinate": summary[method]["w1_max"]["mean"],
+                   "w1_per_seed": summary[method]["w1_per_seed"], "w1_worst_coordinate": summary[method]["w1_max"]["mean"],
                    "floor_w1": summary["floor_w1"]["mean"], "floor_worst_coordinate": summary["floor_w1_max"]["mean"],
                    "seconds": time.perf_counter() - start})
 
@@ -197,6 +204,8 @@ def main():
     parser.add_argument("--out", default="gpu_checks.jsonl")
     parser.add_argument("--maps", default="benchmarks/results/amortised_ot/maps")
     parser.add_argument("--sizes", help='static50: the global update at [[n, width, batch], ...] (JSON)')
+    parser.add_argument("--variants", help='static50: the global update at [[n, {ot() options}], ...] (JSON)')
+    parser.add_argument("--seeds", type=int, default=2, help="static50: seeds (prior samples) per variant")
     parser.add_argument("--ot-options", help="dynamic50: the global OT filter's options (JSON)")
     parser.add_argument("--smoke", action="store_true")
     args = parser.parse_args()
@@ -205,7 +214,10 @@ def main():
     elif args.part == "candidates":
         candidates(args.out, args.maps)
     elif args.part == "static50":
-        static50(args.out, args.smoke, json.loads(args.sizes) if args.sizes else None)
+        variants = json.loads(args.variants) if args.variants else None
+        if args.sizes:
+            variants = [[n, {"width": w, "batch_size": b}] for n, w, b in json.loads(args.sizes)]
+        static50(args.out, args.smoke, variants, args.seeds)
     elif args.part == "dynamic50":
         options = json.loads(args.ot_options) if args.ot_options else None
         if options:  # JSON has no tuples: num_iterations=(first, floor)
