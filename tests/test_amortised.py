@@ -486,6 +486,39 @@ def test_an_averaged_map_is_the_mean_of_its_last_iterates():
     for bad, match in [(5, "average_chunks must be at most chunks = 4"), (-1, "average_chunks")]:
         with pytest.raises(ValueError, match=match):
             train_amortised(key, scalar_model(), num_iterations=200, chunks=4, average_chunks=bad, **options)
+    # the last iterate is kept beside the average (and only there)
+    assert four.last_iterate is None
+    for kept, want in zip(leaves(averaged.last_iterate), leaves(four.params)):
+        np.testing.assert_array_equal(kept, want)
+
+
+def test_warm_started_iterations_start_from_the_last_iterate_of_an_averaged_map(tmp_path):
+    # (a) uses the average; (b) continues from the last iterate unless warm_from="average";
+    # both survive saving and loading bit for bit.
+    options = dict(model_name="scalar-lg", num_simulations=6, num_steps=10, num_particles=100, rounds=1,
+                   width=8, batch_size=32, ensembles_per_batch=4)
+    averaged, _ = train_amortised(jax.random.key(5), scalar_model(), num_iterations=200, chunks=4,
+                                  average_chunks=2, **options)
+    save_map(tmp_path / "map", averaged)
+    loaded = load_map(tmp_path / "map", model="scalar-lg")
+    for got, want in zip(jax.tree.leaves((loaded.params, loaded.last_iterate)),
+                         jax.tree.leaves((averaged.params, averaged.last_iterate))):
+        np.testing.assert_array_equal(got, want)
+    model = scalar_model()
+    _, observations = otf.simulate(jax.random.key(17), model, 8)
+
+    def means(trained_map, *args, **kwargs):
+        return otf.run_filter(jax.random.key(18), model, otf.amortised_ot(trained_map, *args, **kwargs),
+                              observations, 50).mean
+
+    only_average = loaded._replace(last_iterate=None)
+    only_last = loaded._replace(params=loaded.last_iterate, last_iterate=None)
+    np.testing.assert_array_equal(means(loaded), means(only_average))
+    np.testing.assert_array_equal(means(loaded, 3), means(only_last, 3))
+    np.testing.assert_array_equal(means(loaded, 3, warm_from="average"), means(only_average, 3))
+    assert not np.array_equal(means(loaded, 3), means(only_average, 3))
+    with pytest.raises(ValueError, match="warm_from must be"):
+        otf.amortised_ot(loaded, 3, warm_from="first")
 
 
 def test_seed_batches_are_checked():

@@ -2,7 +2,8 @@
 JSON record of what the map is and how it was trained.
 
 A map is a directory holding ``params.msgpack`` (``flax.serialization.to_bytes``: the arrays'
-bytes exactly, so a reloaded map is bit-identical) and ``map.json`` (the ``MapConfig``, the
+bytes exactly, so a reloaded map is bit-identical; an averaged map's last iterate with them)
+and ``map.json`` (the ``MapConfig``, the
 training info, the versions of ot_filter / jax / flax it was written with, and the parameters'
 SHA-256). ``load_map(path, model=..., state_dim=..., observation_dim=...)`` refuses a map
 trained for another model or other dimensions, and a parameter file that does not match its
@@ -54,6 +55,7 @@ def save_map(path: str | os.PathLike, trained_map: AmortisedMap) -> Path:
         "config": trained_map.config._asdict(),
         "info": trained_map.info,
         "dtype": str(jax.tree.leaves(trained_map.params)[0].dtype),
+        "last_iterate": trained_map.last_iterate is not None,
         "sha256": hashlib.sha256(payload).hexdigest(),
         "versions": {"ot_filter": _version("ot_filter"), "jax": jax.__version__, "flax": flax.__version__},
     }
@@ -88,23 +90,29 @@ def load_map(path: str | os.PathLike, *, model: str | None = None, state_dim: in
         raise MapMismatchError(f"{directory}: {PARAMS_FILE} does not match the SHA-256 in {RECORD_FILE}")
     settings, structure = map_recipe(config)
     dtype = jnp.dtype(record["dtype"])
+    params = init_training(settings, structure, jax.random.key(0), config.state_dim, config.observation_dim,
+                           dtype).params
     template = AmortisedMap(
-        init_training(settings, structure, jax.random.key(0), config.state_dim, config.observation_dim, dtype).params,
+        params,
         None if settings.context_scaling is None else jax.tree.map(lambda a: a.astype(dtype), settings.context_scaling),
-        config, {},
+        config, {}, params if record.get("last_iterate", False) else None,  # maps of 0.2.6 have none
     )
     stored = serialization.from_bytes(_stored(template), payload)
     return AmortisedMap(jax.tree.map(jnp.asarray, stored["params"]),
                         None if stored["context_scaling"] is None else ContextScaling(
                             *(jnp.asarray(stored["context_scaling"][k]) for k in ("mean", "scale"))),
-                        config, record["info"])
+                        config, record["info"],
+                        None if template.last_iterate is None else jax.tree.map(jnp.asarray, stored["last_iterate"]))
 
 
 def _stored(trained_map: AmortisedMap) -> dict:
     """The arrays of a map, as serialised."""
     scaling = trained_map.context_scaling
-    return {"params": trained_map.params,
-            "context_scaling": None if scaling is None else {"mean": scaling.mean, "scale": scaling.scale}}
+    stored = {"params": trained_map.params,
+              "context_scaling": None if scaling is None else {"mean": scaling.mean, "scale": scaling.scale}}
+    if trained_map.last_iterate is not None:  # absent, not None: maps without it read as before
+        stored["last_iterate"] = trained_map.last_iterate
+    return stored
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

@@ -67,6 +67,9 @@ class AmortisedMap(NamedTuple):
     context_scaling: ContextScaling | None  # normalises the context features (None: no context)
     config: MapConfig
     info: dict  # how it was trained (iterations, rounds, seconds, validation loss, versions)
+    last_iterate: SaddleParams | None = None  # where ``params`` is an average of iterates
+    #   (``train_maps``' ``average_chunks``): the training's last iterate, the point the
+    #   saddle-point game was at, from which warm-started online iterations may continue
 
 
 class TrainingHistory(NamedTuple):
@@ -162,7 +165,8 @@ def train_maps(keys: Array, model: StateSpaceModel, banks: ForecastBank, validat
     at n = 10 on the dynamic example, (a)'s W1 at the ends of 11 chunks of one round ranged from
     0.27 to 0.40, and the average of the round's 20 gave 0.22 and 0.28 (two trainings) against
     0.33 for their last iterates. The curves are the iterates'; ``info["final_validation_loss"]``
-    is the returned map's."""
+    is the returned map's. The last iterate is kept beside the average (``last_iterate``), and a
+    next round (``starts``) continues from the average."""
     if keys.ndim != 1:
         raise ValueError(f"keys must be a 1-D array of PRNG keys (one per seed), got shape {keys.shape}")
     num_seeds = keys.shape[0]
@@ -235,8 +239,9 @@ def train_maps(keys: Array, model: StateSpaceModel, banks: ForecastBank, validat
         training_loss.append(np.asarray(smoothed, float))
         validation_loss.append(np.asarray(values, float))
         report(chunk + 1, chunks)
-    params, final_validation = training.params, validation_loss[-1]
+    params, final_validation, last = training.params, validation_loss[-1], None
     if average_chunks:
+        last = training.params
         params = jax.tree.map(lambda total: total / average_chunks, summed)
         final_validation = np.asarray(_validate(seed_keys[:, 2], params, model, validations, settings, structure,
                                                 ensembles_per_batch, validation_batches), float)
@@ -250,8 +255,9 @@ def train_maps(keys: Array, model: StateSpaceModel, banks: ForecastBank, validat
                 "seeds_trained_together": num_seeds, "averaged_chunks": average_chunks,
                 "final_validation_loss": float(final_validation[seed]),
                 "finite": bool(np.isfinite(final_validation[seed]))}
-        maps.append(AmortisedMap(jax.tree.map(lambda leaf: leaf[seed], params), per_seed_settings[seed].context_scaling,
-                                 config, info))
+        of_seed = lambda tree: None if tree is None else jax.tree.map(lambda leaf: leaf[seed], tree)  # noqa: E731
+        maps.append(AmortisedMap(of_seed(params), per_seed_settings[seed].context_scaling, config, info,
+                                 of_seed(last)))
         histories.append(history)
     return maps, histories
 

@@ -10,7 +10,9 @@ offline map, T(x, y) in that ensemble's standardised coordinates.
   (nothing drawn for it) stands in for the training loss in the divergence test.
 - ``num_iterations=k > 0`` (or a halving schedule ``(first, floor)``): k outer iterations per
   step, the first step's from the offline map, later ones warm-started from the step before
-  (``restart=True``: every step from the offline map again, with fresh optimiser states).
+  (``restart=True``: every step from the offline map again, with fresh optimiser states). Where
+  the map is an average of training iterates, these iterations start from its last iterate
+  (``warm_from``).
 
 Everything else is the online update's: the divergence tests (loss, far-thrown particles, the
 posterior predictive check, the innovation trend), the EnKF fallback, ``info`` and ``transport``.
@@ -32,7 +34,8 @@ __all__ = ["amortised_ot"]
 
 def amortised_ot(trained_map: AmortisedMap, num_iterations: int | tuple[int, int] = 0, *, restart: bool = False,
                  batch_size: int | None = None, inner_steps: int | None = None,
-                 divergence_threshold: float = 10.0, trend_threshold: float = 10.0) -> OTUpdate:
+                 divergence_threshold: float = 10.0, trend_threshold: float = 10.0,
+                 warm_from: str = "last_iterate") -> OTUpdate:
     """The OT update filtering with ``trained_map``: ``num_iterations`` online iterations per
     step (0: none; or ``(first, floor)``, ``ot()``'s halving schedule). With ``restart=False``
     only the first step (and one after a divergence) starts from the offline map and later ones
@@ -41,7 +44,12 @@ def amortised_ot(trained_map: AmortisedMap, num_iterations: int | tuple[int, int
     fresh optimiser states: 32 iterations of Adam from scratch mostly undo the offline map).
     ``batch_size`` and ``inner_steps`` of the online iterations default to the offline
     training's (a smaller batch makes (b) cheaper; the networks are the map's). The thresholds
-    are the online update's (``ot()``)."""
+    are the online update's (``ot()``).
+
+    ``warm_from``: where the map's parameters are an average of its training iterates (it has a
+    ``last_iterate``), the online iterations start from ``"last_iterate"`` (the point the
+    saddle-point game was at) or from ``"average"``. Without online iterations the map used is
+    always the average."""
     if not isinstance(trained_map, AmortisedMap):
         raise TypeError(f"trained_map must be an AmortisedMap (ot_filter.amortised), got {type(trained_map).__name__}")
     if isinstance(num_iterations, tuple):
@@ -52,9 +60,14 @@ def amortised_ot(trained_map: AmortisedMap, num_iterations: int | tuple[int, int
             raise ValueError(f"num_iterations (first, floor) needs floor <= first, got {num_iterations}")
     else:
         first = floor = check_int("num_iterations", num_iterations, minimum=0)
+    if warm_from not in ("last_iterate", "average"):
+        raise ValueError(f"warm_from must be 'last_iterate' or 'average', got {warm_from!r}")
+    anchor = trained_map.params
+    if first > 0 and warm_from == "last_iterate" and trained_map.last_iterate is not None:
+        anchor = trained_map.last_iterate
     settings, structure = map_recipe(trained_map.config, first, trained_map.context_scaling)
     settings = settings._replace(
-        anchor=trained_map.params,
+        anchor=anchor,
         divergence_threshold=check_number("divergence_threshold", divergence_threshold, 0.0, strict_minimum=True),
         trend_threshold=check_number("trend_threshold", trend_threshold, 0.0, strict_minimum=True),
     )
