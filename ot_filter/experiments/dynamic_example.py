@@ -288,12 +288,15 @@ def run_dynamic_example(
     progress: int = 0,
     extra_updates: dict | None = None,
     in_processes: Sequence[str] = (),
+    filter_key: jax.Array | None = None,
 ) -> dict:
     """Filters ``num_simulations`` independent trajectories with every method; measures MMD to the
     exact posterior at every time.
 
     Args:
       key: PRNG key (truths and every filter derive from it).
+      filter_key: the filters' key instead of the one derived from ``key`` (other filter
+        randomness on the same truths).
       ot_options: overrides of ``OT_FILTER_OPTIONS`` for ``ot_filter.ot``.
       bandwidth, standardise: the MMD kernel (see ``mmd_to_exact``).
       average_from: the reported average is over times t >= this (t = 0.1 k, k = 1..T).
@@ -329,7 +332,8 @@ def run_dynamic_example(
     if clash:
         raise ValueError(f"extra_updates repeat methods already run: {sorted(clash)}")
     updates.update(extra_updates or {})
-    truth_key, filter_key, reference_key = jax.random.split(key, 3)
+    truth_key, derived_key, reference_key = jax.random.split(key, 3)
+    filter_key = derived_key if filter_key is None else filter_key
     compare_key = jax.random.fold_in(reference_key, 1)
     states, observations = simulate_truths(truth_key, model, num_steps, num_simulations)
     filter_keys = {name: jax.random.fold_in(filter_key, index) for index, name in enumerate(updates)}

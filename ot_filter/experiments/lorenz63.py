@@ -106,6 +106,7 @@ def run_lorenz63(
     progress: int = 0,
     observed: Sequence[int] = (0, 2),
     extra_updates: dict | None = None,
+    filter_key: jax.Array | None = None,
 ) -> dict:
     """Runs every method on ``num_simulations`` independent truths (vmapped, one compiled program
     per method). Returns ``{"metrics": JSON-ready dict, "arrays": NumPy arrays}``; the arrays hold
@@ -113,7 +114,9 @@ def run_lorenz63(
     ``reference_particles`` > 0 adds a SIR with that many particles (saved: its mean only);
     ``progress`` > 0 reports every that many steps to ``ot_filter.progress`` listeners;
     ``observed``: the observed components; ``extra_updates``: ``{name: update}`` run after the
-    named methods on the same truths (e.g. an amortised OT filter, ``experiments/amortised.py``)."""
+    named methods on the same truths (e.g. an amortised OT filter, ``experiments/amortised.py``);
+    ``filter_key``: the filters' key instead of the one derived from ``key`` (other filter
+    randomness on the same truths)."""
     truth_model, filter_model = lorenz63_models(observed)
     updates = _updates(methods, ot_options) if methods or not extra_updates else {}
     clash = set(updates) & set(extra_updates or {})
@@ -122,7 +125,8 @@ def run_lorenz63(
     updates.update(extra_updates or {})
     if reference_particles:
         updates["reference"] = sir()
-    truth_key, filter_key = jax.random.split(key)
+    truth_key, derived_key = jax.random.split(key)
+    filter_key = derived_key if filter_key is None else filter_key
     states, observations = simulate_truths(truth_key, truth_model, num_steps, num_simulations)
     times = TIME_STEP * np.arange(1, num_steps + 1)
     settled_from = int(np.searchsorted(times, SETTLE_TIME, side="right"))
