@@ -9,7 +9,7 @@ each shared by every filter (paired): the online OT filter, (a), (b) from the la
 (b) from the average.
 
     PYTHONPATH=. python benchmarks/amortised_warm_from.py --experiment lorenz63 --observed 0
-        [--training-key 63] [--filter-keys 3] [--maps DIR] [--out FILE.json]
+        [--training-key 63] [--filter-keys 0,1,2] [--filters ot,amortised,...] [--maps DIR] [--out FILE.json]
     PYTHONPATH=. python benchmarks/amortised_warm_from.py --experiment dynamic --dim 2 ...
 
 Lorenz-63: MSE of the mean to the truth after t = 1.5; the dynamic example: W1 to the exact
@@ -33,7 +33,7 @@ TRUTHS_KEY = 2026
 
 
 def filters(trained, experiment: str) -> dict:
-    options = warm_options(trained, experiment)
+    options = {k: v for k, v in warm_options(trained, experiment).items() if k != "warm_from"}
     return {"amortised": amortised_ot(trained),
             "amortised_warm": amortised_ot(trained, **options),
             "amortised_warm_average": amortised_ot(trained, warm_from="average", **options)}
@@ -70,7 +70,9 @@ def main():
     parser.add_argument("--dim", type=int, default=2)
     parser.add_argument("--observed", default="0,2", help="Lorenz-63's observed components (0-based)")
     parser.add_argument("--training-key", type=int, default=63)
-    parser.add_argument("--filter-keys", type=int, default=3)
+    parser.add_argument("--filter-keys", default="0,1,2", help="the filter keys (comma-separated)")
+    parser.add_argument("--filters", default="ot,amortised,amortised_warm,amortised_warm_average",
+                        help="the filters to run (comma-separated)")
     parser.add_argument("--maps", default="/tmp/warm_from_maps")
     parser.add_argument("--out", default="warm_from.json")
     args = parser.parse_args()
@@ -82,8 +84,11 @@ def main():
     record = {"experiment": args.experiment, "dim": args.dim, "observed": list(observed),
               "training_key": args.training_key, "stage_s": time.perf_counter() - started,
               "selection": trained.info.get("selection"), "filters": {}}
-    for filter_key in range(args.filter_keys):
+    chosen = args.filters.split(",")
+    for filter_key in (int(k) for k in args.filter_keys.split(",")):
         for name, update in [("ot", None), *filters(trained, args.experiment).items()]:
+            if name not in chosen:
+                continue
             record["filters"][f"{name}_{filter_key}"] = score(args.experiment, args.dim, observed, name, update,
                                                               filter_key)
             print(name, filter_key, record["filters"][f"{name}_{filter_key}"], flush=True)

@@ -322,10 +322,11 @@ def test_warm_started_budget_covers_half_the_online_filter_s_pairs_at_its_floor(
 
     # The online filter's floor: 64 iterations of ot()'s batch (128 at n = 2, 1024 at n = 10).
     # n = 2: half of 64 x 128 pairs is 16 iterations of 256, below the measured (128, 32): kept.
-    assert warm_options(sized(2, 256), "dynamic") == WARM_OPTIONS["dynamic"] == {"num_iterations": (128, 32)}
+    assert (warm_options(sized(2, 256), "dynamic") == WARM_OPTIONS["dynamic"]
+            == {"num_iterations": (128, 32), "warm_from": "average"})
     # n = 10: 32,768 pairs, 64 iterations of the map's 512 (128 of 256); first stays 4 x floor.
-    assert warm_options(sized(10, 512), "dynamic") == {"num_iterations": (256, 64)}
-    assert warm_options(sized(10, 256), "dynamic") == {"num_iterations": (512, 128)}
+    assert warm_options(sized(10, 512), "dynamic") == {"num_iterations": (256, 64), "warm_from": "average"}
+    assert warm_options(sized(10, 256), "dynamic") == {"num_iterations": (512, 128), "warm_from": "average"}
     assert warm_options(sized(3, 256), "lorenz63") == WARM_OPTIONS["lorenz63"]
 
 
