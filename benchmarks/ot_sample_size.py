@@ -11,7 +11,7 @@ one), each beside the W1 of as many exact samples (the Monte-Carlo floor at that
 - in sample: the update's own output, its ``--train`` particles transported (what the static
   example and the filters score);
 - out of sample: ``--evaluate`` fresh prior particles transported by the same trained map
-  (``update.transport``), whose floor is small (about 0.013 at 10,000): what is left above it is
+  (``update.transport``), whose floor is small (about 0.011 at 10,000): what is left above it is
   the map's own error;
 - leakage: the exact map's coordinate k reads (x_k, y_k) alone. Holding each fresh particle's x_k
   and redrawing its other coordinates from the prior (``--redraws`` times), ``leakage_std`` is
@@ -22,7 +22,8 @@ one), each beside the W1 of as many exact samples (the Monte-Carlo floor at that
 If the map learned from 1,000 particles is as good out of sample as one learned from 10,000 or
 100,000 (the training cost does not grow with N: the mini-batches keep their size), the plateau is
 the optimisation's or the network's; if more particles bring it down, it is the estimation from N
-samples. Seeds come from key 2026 as in ``benchmarks/ot_sizes.py``. Appends one record per run
+samples. Seeds come from key 2026, split otherwise than in ``benchmarks/ot_sizes.py``: other prior
+samples than its records. Appends one record per run
 to ``--out`` (JSON list).
 """
 
