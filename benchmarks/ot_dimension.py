@@ -16,7 +16,7 @@ to N exact samples, each beside its Monte-Carlo floor (N exact samples scored th
   on one CPU core; ``benchmarks/results/gpu/`` has that cell measured on a GPU).
 - dynamic: N = 1000, 20 steps, ``--simulations``, time average over t >= 1; OT with the dynamic
   experiment's filter options (``experiments.dynamic_example.OT_FILTER_OPTIONS``) for both OT
-  updates.
+  updates, changed by ``--ot-options`` (JSON, e.g. '{"prior_smoothing": 1.5}').
 
 - cost: seconds of one update at the smallest and the largest n, global and localised.
 
@@ -64,13 +64,13 @@ def static_rows(dims, seeds):
     return rows
 
 
-def dynamic_rows(dims, simulations, steps, save=None, methods=METHODS):
+def dynamic_rows(dims, simulations, steps, save=None, methods=METHODS, ot_options=None):
     rows = []
     for dim in dims:
         start = time.perf_counter()
         result = run_dynamic_example(jax.random.key(2026), dim=dim, num_particles=1000, num_steps=steps,
                                      num_simulations=simulations, methods=methods, bandwidth=4.0,
-                                     standardise=True, average_from=1.0, keep=0)
+                                     standardise=True, average_from=1.0, keep=0, ot_options=ot_options)
         summary = result["metrics"]
         row = {"dim": dim, "seconds": time.perf_counter() - start, "floor": summary["floor"]}
         for name in methods:
@@ -231,7 +231,10 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--out", default="benchmarks/results")
+    parser.add_argument("--ot-options", default="{}",
+                        help="dynamic part: overrides of the experiment's OT filter options, as JSON")
     args = parser.parse_args()
+    ot_options = json.loads(args.ot_options)
     methods = tuple(args.methods.split(","))
     dims = [int(v) for v in args.dims.split(",")]
     os.makedirs(args.out, exist_ok=True)
@@ -256,7 +259,9 @@ def main():
             results["dynamic"] = [merged[dim] for dim in sorted(merged)]
             write_text_atomic(path, json.dumps(results, indent=1))
 
-        save(dynamic_rows(dims, args.simulations, args.steps, save, methods))
+        if ot_options:
+            results["dynamic_ot_options"] = ot_options
+        save(dynamic_rows(dims, args.simulations, args.steps, save, methods, ot_options))
     write_text_atomic(path, json.dumps(results, indent=1))
     write_report(results, args.out)
 
