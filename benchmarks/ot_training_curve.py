@@ -1,0 +1,103 @@
+"""Does the global map at n = 10 overfit its N = 1,000 particles as it trains? Its error over the
+iterations, on its own particles and on fresh ones (what early stopping could gain at best).
+
+    PYTHONPATH=.:benchmarks python benchmarks/ot_training_curve.py [--dim 10] [--train 1000]
+        [--chunk 1000] [--chunks 20] [--seed 0] [--options '{}'] [--out FILE]
+
+Static example (lambda_w = 0.4, y = 1), the prior sample of seed ``--seed`` of
+``benchmarks/ot_sample_size.py`` (key 2026 split in 2: its records' prior samples, fresh
+particles and floors). One ``ot()`` (its defaults unless ``--options``) is trained in
+``--chunks`` warm-started updates of ``--chunk`` iterations on the same prior and observation:
+the optimiser states carry over, so this is one training of chunks x chunk iterations, scored
+after each chunk by W1 per coordinate to the exact posterior (mean and worst coordinate) of
+
+- its own particles transported (what the static example and the filters score), beside the W1 of
+  as many exact samples (the floor at that size);
+- 10,000 fresh prior particles transported by the same map (floor about 0.011): the map's own
+  error, which rises with the iterations if the map fits its particles rather than their law.
+
+Appends one record per run to ``--out`` (JSON list).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from ot_sample_size import NOISE, OBSERVATION, SCALE, exact_scoring
+
+import ot_filter as otf
+from ot_filter.experiments._common import write_text_atomic
+from ot_filter.models import squared_observation
+
+
+def build(*, dim, num_train, num_evaluate, options, chunk):
+    """``(setup, step)``: ``setup(key)`` draws what ``ot_sample_size.py`` draws for that key (the
+    prior, the fresh particles and their observations, the two floors) and initialises the
+    update; ``step(key, state, ...)`` trains one chunk and scores it."""
+    model = squared_observation(dim=dim, noise=NOISE, observation_scale=SCALE, static=True)
+    update = otf.ot(**dict(options, num_iterations=chunk))
+    w1, exact_samples = exact_scoring(dim)
+    y = jnp.full((dim,), OBSERVATION)
+
+    @jax.jit
+    def setup(key):
+        prior_key, init_key, apply_key, fresh_key, floor_key, floor2_key, _ = jax.random.split(key, 7)
+        prior = jax.vmap(model.sample_initial)(jax.random.split(prior_key, num_train))
+        state_key, observation_key = jax.random.split(fresh_key)
+        fresh = jax.vmap(model.sample_initial)(jax.random.split(state_key, num_evaluate))
+        simulated = jax.vmap(model.sample_observation)(jax.random.split(observation_key, num_evaluate), fresh)
+        floors = {"floor_in_sample": w1(exact_samples(floor_key, num_train)),
+                  "floor_out_of_sample": w1(exact_samples(floor2_key, num_evaluate))}
+        return apply_key, update.init(init_key, prior, model), prior, fresh, simulated, floors
+
+    @jax.jit
+    def step(key, state, prior, fresh, simulated):
+        posterior, state, info = update.apply(key, state, prior, y, model)
+        moved = update.transport(state, fresh, y, simulated)
+        return state, {"in_sample": w1(posterior), "out_of_sample": w1(moved), "diverged": info.diverged}
+
+    return setup, step
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dim", type=int, default=10)
+    parser.add_argument("--train", type=int, default=1000, help="prior particles the map learns from")
+    parser.add_argument("--evaluate", type=int, default=10_000, help="fresh particles it is scored on")
+    parser.add_argument("--chunk", type=int, default=1000, help="iterations between two scores")
+    parser.add_argument("--chunks", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0, help="which of ot_sample_size.py's 2 seeds")
+    parser.add_argument("--options", default="{}", help="ot() options as JSON (not num_iterations)")
+    parser.add_argument("--out", default="benchmarks/results/ot_dimension_size_rule/training_curve.json")
+    args = parser.parse_args()
+    options = json.loads(args.options)
+    setup, step = build(dim=args.dim, num_train=args.train, num_evaluate=args.evaluate, options=options,
+                        chunk=args.chunk)
+    apply_key, state, prior, fresh, simulated, floors = setup(jax.random.split(jax.random.key(2026), 2)[args.seed])
+    record = {"dim": args.dim, "train": args.train, "evaluate": args.evaluate, "options": options,
+              "chunk": args.chunk, "seed": args.seed, "device": str(jax.devices()[0]),
+              **{name: float(np.mean(value)) for name, value in floors.items()}, "curve": []}
+    print(json.dumps({k: v for k, v in record.items() if k != "curve"}), flush=True)
+    for chunk in range(args.chunks):
+        start = time.perf_counter()
+        state, out = jax.block_until_ready(step(jax.random.fold_in(apply_key, chunk), state, prior, fresh, simulated))
+        point = {"iterations": (chunk + 1) * args.chunk, "seconds": round(time.perf_counter() - start, 1),
+                 "diverged": bool(out["diverged"])}
+        for name in ("in_sample", "out_of_sample"):
+            point[name] = float(np.mean(out[name]))
+            point[name + "_worst"] = float(np.max(out[name]))
+        print(json.dumps(point), flush=True)
+        record["curve"].append(point)
+    records = json.load(open(args.out)) if os.path.exists(args.out) else []
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+    write_text_atomic(args.out, json.dumps(records + [record], indent=1))
+
+
+if __name__ == "__main__":
+    main()
