@@ -34,6 +34,7 @@ import argparse
 import json
 import os
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -65,6 +66,30 @@ def exact_scoring(dim):
     return w1, exact_samples
 
 
+class Draws(NamedTuple):
+    """What one seed's key draws (``draws``)."""
+
+    init_key: jax.Array
+    apply_key: jax.Array
+    floor_key: jax.Array  # the in-sample floor's exact samples
+    floor2_key: jax.Array  # the out-of-sample floor's
+    redraw_key: jax.Array
+    prior: jax.Array  # [num_train, dim] the particles the map learns from
+    fresh: jax.Array  # [num_evaluate, dim] fresh prior particles it is scored on
+    simulated: jax.Array  # [num_evaluate, dim] their simulated observations
+
+
+def draws(key, model, num_train, num_evaluate) -> Draws:
+    """The seed's keys, prior sample and fresh particles (``benchmarks/ot_training_curve.py``
+    draws the same)."""
+    prior_key, init_key, apply_key, fresh_key, floor_key, floor2_key, redraw_key = jax.random.split(key, 7)
+    prior = jax.vmap(model.sample_initial)(jax.random.split(prior_key, num_train))
+    state_key, observation_key = jax.random.split(fresh_key)
+    fresh = jax.vmap(model.sample_initial)(jax.random.split(state_key, num_evaluate))
+    simulated = jax.vmap(model.sample_observation)(jax.random.split(observation_key, num_evaluate), fresh)
+    return Draws(init_key, apply_key, floor_key, floor2_key, redraw_key, prior, fresh, simulated)
+
+
 def build(*, dim, num_train, num_evaluate, options, num_redraws):
     """The compiled run of one seed: key -> per-coordinate W1s (one program for all seeds)."""
     model = squared_observation(dim=dim, noise=NOISE, observation_scale=SCALE, static=True)
@@ -74,13 +99,10 @@ def build(*, dim, num_train, num_evaluate, options, num_redraws):
 
     @jax.jit
     def go(key):
-        prior_key, init_key, apply_key, fresh_key, floor_key, floor2_key, redraw_key = jax.random.split(key, 7)
-        prior = jax.vmap(model.sample_initial)(jax.random.split(prior_key, num_train))
-        state = update.init(init_key, prior, model)
-        posterior, state, info = update.apply(apply_key, state, prior, y, model)
-        state_key, observation_key = jax.random.split(fresh_key)
-        fresh = jax.vmap(model.sample_initial)(jax.random.split(state_key, num_evaluate))
-        simulated = jax.vmap(model.sample_observation)(jax.random.split(observation_key, num_evaluate), fresh)
+        d = draws(key, model, num_train, num_evaluate)
+        fresh, simulated = d.fresh, d.simulated
+        state = update.init(d.init_key, d.prior, model)
+        posterior, state, info = update.apply(d.apply_key, state, d.prior, y, model)
         moved = update.transport(state, fresh, y, simulated)
 
         # The exact map's coordinate k reads (x_k, y_k) only. Hold x_k, redraw the other coordinates
@@ -95,10 +117,10 @@ def build(*, dim, num_train, num_evaluate, options, num_redraws):
 
             return jax.lax.map(coordinate, jnp.arange(dim)).T  # [M, dim]
 
-        redrawn = jax.lax.map(redraw, jax.random.split(redraw_key, num_redraws))  # [R, M, dim]
+        redrawn = jax.lax.map(redraw, jax.random.split(d.redraw_key, num_redraws))  # [R, M, dim]
         leakage = jnp.sqrt(jnp.mean(jnp.var(redrawn, axis=0), axis=0))  # [dim]
-        return {"in_sample": w1(posterior), "floor_in_sample": w1(exact_samples(floor_key, num_train)),
-                "out_of_sample": w1(moved), "floor_out_of_sample": w1(exact_samples(floor2_key, num_evaluate)),
+        return {"in_sample": w1(posterior), "floor_in_sample": w1(exact_samples(d.floor_key, num_train)),
+                "out_of_sample": w1(moved), "floor_out_of_sample": w1(exact_samples(d.floor2_key, num_evaluate)),
                 "others_averaged": w1(jnp.mean(redrawn, axis=0)), "leakage_std": leakage,
                 "diverged": info.diverged}
 

@@ -29,7 +29,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from ot_sample_size import NOISE, OBSERVATION, SCALE, exact_scoring
+from ot_sample_size import NOISE, OBSERVATION, SCALE, draws, exact_scoring
 
 import ot_filter as otf
 from ot_filter.experiments._common import write_text_atomic
@@ -47,14 +47,10 @@ def build(*, dim, num_train, num_evaluate, options, chunk):
 
     @jax.jit
     def setup(key):
-        prior_key, init_key, apply_key, fresh_key, floor_key, floor2_key, _ = jax.random.split(key, 7)
-        prior = jax.vmap(model.sample_initial)(jax.random.split(prior_key, num_train))
-        state_key, observation_key = jax.random.split(fresh_key)
-        fresh = jax.vmap(model.sample_initial)(jax.random.split(state_key, num_evaluate))
-        simulated = jax.vmap(model.sample_observation)(jax.random.split(observation_key, num_evaluate), fresh)
-        floors = {"floor_in_sample": w1(exact_samples(floor_key, num_train)),
-                  "floor_out_of_sample": w1(exact_samples(floor2_key, num_evaluate))}
-        return apply_key, update.init(init_key, prior, model), prior, fresh, simulated, floors
+        d = draws(key, model, num_train, num_evaluate)
+        floors = {"floor_in_sample": w1(exact_samples(d.floor_key, num_train)),
+                  "floor_out_of_sample": w1(exact_samples(d.floor2_key, num_evaluate))}
+        return d.apply_key, update.init(d.init_key, d.prior, model), d.prior, d.fresh, d.simulated, floors
 
     @jax.jit
     def step(key, state, prior, fresh, simulated):
