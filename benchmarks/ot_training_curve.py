@@ -3,6 +3,7 @@ iterations, on its own particles and on fresh ones (what early stopping could ga
 
     PYTHONPATH=.:benchmarks python benchmarks/ot_training_curve.py [--dim 10] [--train 1000]
         [--chunk 1000] [--chunks 20] [--seed 0] [--options '{}'] [--out FILE]
+    PYTHONPATH=.:benchmarks python benchmarks/ot_training_curve.py --plot FIGURE.png [--out FILE]
 
 Static example (lambda_w = 0.4, y = 1), the prior sample of seed ``--seed`` of
 ``benchmarks/ot_sample_size.py`` (key 2026 split in 2: its records' prior samples, fresh
@@ -16,7 +17,8 @@ after each chunk by W1 per coordinate to the exact posterior (mean and worst coo
 - 10,000 fresh prior particles transported by the same map (floor about 0.011): the map's own
   error, which rises with the iterations if the map fits its particles rather than their law.
 
-Appends one record per run to ``--out`` (JSON list).
+Appends one record per run to ``--out`` (JSON list). ``--plot`` draws the records of ``--out``
+instead: one panel per setting (the seeds overlaid), W1 against the iterations with the floors.
 """
 
 from __future__ import annotations
@@ -61,6 +63,35 @@ def build(*, dim, num_train, num_evaluate, options, chunk):
     return setup, step
 
 
+def plot(records, path):
+    """W1 over the iterations: one panel per setting, the seeds overlaid, with the floors."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    settings = sorted({json.dumps(r["options"], sort_keys=True) for r in records})
+    fig, axes = plt.subplots(1, len(settings), figsize=(5.5 * len(settings), 4), sharey=True, squeeze=False)
+    for ax, setting in zip(axes[0], settings):
+        for r in (r for r in records if json.dumps(r["options"], sort_keys=True) == setting):
+            iterations = [p["iterations"] for p in r["curve"]]
+            line, = ax.plot(iterations, [p["in_sample"] for p in r["curve"]], "-o", ms=3,
+                            label=f"seed {r['seed']}: its {r['train']:,} particles")
+            ax.plot(iterations, [p["out_of_sample"] for p in r["curve"]], "--s", ms=3, color=line.get_color(),
+                    label=f"seed {r['seed']}: {r['evaluate']:,} fresh particles")
+            ax.axhline(r["floor_in_sample"], color=line.get_color(), lw=0.8, ls=":")
+            ax.axhline(2 * r["floor_in_sample"], color="k", lw=0.8, ls="-.")
+        options = json.loads(setting)
+        ax.set(xlabel="outer iterations (one f step each)",
+               title=f"n = {r['dim']}, " + (", ".join(f"{k} {v}" for k, v in options.items()) or "ot() defaults"))
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_ylabel("W1 per coordinate to the exact posterior (mean)")
+    axes[0, 0].legend(fontsize=7, title="dotted: N-sample floor; dash-dot: twice it", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dim", type=int, default=10)
@@ -71,7 +102,10 @@ def main():
     parser.add_argument("--seed", type=int, default=0, help="which of ot_sample_size.py's 2 seeds")
     parser.add_argument("--options", default="{}", help="ot() options as JSON (not num_iterations)")
     parser.add_argument("--out", default="benchmarks/results/ot_dimension_size_rule/training_curve.json")
+    parser.add_argument("--plot", default=None, help="draw the records of --out into this PNG instead")
     args = parser.parse_args()
+    if args.plot:
+        return plot(json.load(open(args.out)), args.plot)
     options = json.loads(args.options)
     setup, step = build(dim=args.dim, num_train=args.train, num_evaluate=args.evaluate, options=options,
                         chunk=args.chunk)
