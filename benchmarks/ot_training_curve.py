@@ -9,7 +9,8 @@ Static example (lambda_w = 0.4, y = 1), the prior sample of seed ``--seed`` of
 ``benchmarks/ot_sample_size.py`` (key 2026 split in 2: its records' prior samples, fresh
 particles and floors). One ``ot()`` (its defaults unless ``--options``) is trained in
 ``--chunks`` warm-started updates of ``--chunk`` iterations on the same prior and observation:
-the optimiser states carry over, so this is one training of chunks x chunk iterations, scored
+the optimiser states carry over (the filter's innovation trend does not: ``build``), so this is
+one training of chunks x chunk iterations, scored
 after each chunk by W1 per coordinate to the exact posterior (mean and worst coordinate) of
 
 - its own particles transported (what the static example and the filters score), beside the W1 of
@@ -56,6 +57,10 @@ def build(*, dim, num_train, num_evaluate, options, chunk):
 
     @jax.jit
     def step(key, state, prior, fresh, simulated):
+        # The same y at every chunk would drive the filter's innovation trend (a moving average
+        # over updates) below its floor after about 15 chunks, and the update would then stop
+        # training as a filter that lost track: each chunk starts it afresh (at 1).
+        state = state._replace(innovation_trend=jnp.ones_like(state.innovation_trend))
         posterior, state, info = update.apply(key, state, prior, y, model)
         moved = update.transport(state, fresh, y, simulated)
         return state, {"in_sample": w1(posterior), "out_of_sample": w1(moved), "diverged": info.diverged}
