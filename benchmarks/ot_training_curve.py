@@ -75,7 +75,7 @@ def plot(records, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    settings = sorted({json.dumps(r["options"], sort_keys=True) for r in records})
+    settings = sorted({json.dumps(r["options"], sort_keys=True) for r in records}, key=lambda s: (len(s), s))
     fig, axes = plt.subplots(1, len(settings), figsize=(5.5 * len(settings), 4), sharey=True, squeeze=False)
     for ax, setting in zip(axes[0], settings):
         for r in (r for r in records if json.dumps(r["options"], sort_keys=True) == setting):
