@@ -76,8 +76,12 @@ def plot(records, path):
     import matplotlib.pyplot as plt
 
     settings = sorted({json.dumps(r["options"], sort_keys=True) for r in records}, key=lambda s: (len(s), s))
-    fig, axes = plt.subplots(1, len(settings), figsize=(5.5 * len(settings), 4), sharey=True, squeeze=False)
-    for ax, setting in zip(axes[0], settings):
+    columns = min(2, len(settings))
+    rows = -(-len(settings) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(6 * columns, 4 * rows), sharey=True, squeeze=False)
+    for ax in axes.flat[len(settings):]:
+        ax.set_visible(False)
+    for ax, setting in zip(axes.flat, settings):
         for r in (r for r in records if json.dumps(r["options"], sort_keys=True) == setting):
             iterations = [p["iterations"] for p in r["curve"]]
             line, = ax.plot(iterations, [p["in_sample"] for p in r["curve"]], "-o", ms=3,
@@ -90,7 +94,8 @@ def plot(records, path):
         ax.set(xlabel="outer iterations (one f step each)",
                title=f"n = {r['dim']}, " + (", ".join(f"{k} {v}" for k, v in options.items()) or "ot() defaults"))
         ax.grid(alpha=0.3)
-    axes[0, 0].set_ylabel("W1 per coordinate to the exact posterior (mean)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("W1 per coordinate to the exact posterior (mean)")
     axes[0, 0].legend(fontsize=7, title="dotted: N-sample floor; dash-dot: twice it", title_fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
