@@ -1,7 +1,7 @@
 """Where the global map's plateau at n = 10 comes from: the particles it learns from, or the map.
 
     PYTHONPATH=. python benchmarks/ot_sample_size.py --train 1000 [--dim 10] [--seeds 2]
-        [--evaluate 10000] [--options '{}'] [--only-seed K] [--out FILE]
+        [--evaluate 10000] [--options '{}'] [--out FILE]
 
 Static example (lambda_w = 0.4, y = 1). One global ``ot()`` update (its defaults unless
 ``--options``) is trained on ``--train`` prior particles, as a filter would train it. It is then
@@ -22,8 +22,7 @@ one), each beside the W1 of as many exact samples (the Monte-Carlo floor at that
 If the map learned from 1,000 particles is as good out of sample as one learned from 10,000 or
 100,000 (the training cost does not grow with N: the mini-batches keep their size), the plateau is
 the optimisation's or the network's; if more particles bring it down, it is the estimation from N
-samples. ``--only-seed K`` runs seed K of the ``--seeds`` alone (one process per core; merge
-their records). Seeds come from key 2026, split otherwise than in ``benchmarks/ot_sizes.py``: other prior
+samples. Seeds come from key 2026, split otherwise than in ``benchmarks/ot_sizes.py``: other prior
 samples than its records. Appends one record per run
 to ``--out`` (JSON list).
 """
@@ -145,7 +144,6 @@ def main():
     parser.add_argument("--evaluate", type=int, default=10_000, help="fresh particles it is scored on")
     parser.add_argument("--options", default="{}", help="ot() options as JSON")
     parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--only-seed", type=int, default=None, help="run this seed of the --seeds alone")
     parser.add_argument("--redraws", type=int, default=16, help="draws of the other coordinates (leakage)")
     parser.add_argument("--out", default="benchmarks/results/ot_dimension_size_rule/sample_size.json")
     args = parser.parse_args()
@@ -154,15 +152,11 @@ def main():
                num_redraws=args.redraws)
     seeds = []
     for seed, seed_key in enumerate(jax.random.split(jax.random.key(2026), args.seeds)):
-        if args.only_seed is not None and seed != args.only_seed:
-            continue
         record = run_one(go, seed_key)  # the first seed's seconds include compiling
         print(json.dumps({"seed": seed, **record}), flush=True)
         seeds.append(record)
     record = {"dim": args.dim, "train": args.train, "evaluate": args.evaluate, "options": options,
               "per_seed": seeds, "device": str(jax.devices()[0])}
-    if args.only_seed is not None:
-        record["only_seed"] = args.only_seed
     for name in ("in_sample", "floor_in_sample", "out_of_sample", "floor_out_of_sample", "others_averaged",
                  "leakage_std"):
         values = np.array([s[name] for s in seeds])
