@@ -2,7 +2,7 @@
 iterations, on its own particles and on fresh ones (what early stopping could gain at best).
 
     PYTHONPATH=.:benchmarks python benchmarks/ot_training_curve.py [--dim 10] [--train 1000]
-        [--chunk 1000] [--chunks 20] [--seed 0] [--options '{}'] [--out FILE]
+        [--chunk 1000] [--chunks 20] [--seed 0] [--options '{}'] [--potential-optimizer SPEC] [--out FILE]
     PYTHONPATH=.:benchmarks python benchmarks/ot_training_curve.py --plot FIGURE.png [--out FILE]
 
 Static example (lambda_w = 0.4, y = 1), the prior sample of seed ``--seed`` of
@@ -18,6 +18,11 @@ after each chunk by W1 per coordinate to the exact posterior (mean and worst coo
 - 10,000 fresh prior particles transported by the same map (floor about 0.011): the map's own
   error, which rises with the iterations if the map fits its particles rather than their law.
 
+``--potential-optimizer`` replaces f's AdamW (3e-4, weight decay 1) by another optax optimiser
+with the same rate and decoupled weight decay (``potential_optimizer``): ``optimistic:o`` is
+optax's optimistic Adam with optimism o times the rate (a cure for limit cycles in min-max games),
+``adamw-b1:b`` AdamW with first-moment decay b (GANs' 0.5 or 0: less momentum to circle with).
+
 Appends one record per run to ``--out`` (JSON list). ``--plot`` draws the records of ``--out``
 instead: one panel per setting (the seeds overlaid), W1 against the iterations with the floors.
 """
@@ -32,6 +37,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 from ot_sample_size import NOISE, OBSERVATION, SCALE, draws, exact_scoring
 
 import ot_filter as otf
@@ -39,12 +45,24 @@ from ot_filter.experiments._common import write_text_atomic
 from ot_filter.models import squared_observation
 
 
-def build(*, dim, num_train, num_evaluate, options, chunk):
+def potential_optimizer(spec: str, learning_rate: float = 3e-4, weight_decay: float = 1.0):
+    """f's optimiser from ``--potential-optimizer`` (module docstring), with AdamW's decoupled decay."""
+    name, _, value = spec.partition(":")
+    if name == "optimistic":
+        base = optax.optimistic_adam(learning_rate, optimism=float(value or 1) * learning_rate)
+        # AdamW's decay, -rate * decay * params, added to the scaled update.
+        return optax.chain(base, optax.add_decayed_weights(-learning_rate * weight_decay))
+    if name == "adamw-b1":
+        return optax.adamw(learning_rate, b1=float(value), weight_decay=weight_decay)
+    raise ValueError(f"--potential-optimizer: unknown {spec!r}")
+
+
+def build(*, dim, num_train, num_evaluate, options, chunk, optimizer=None):
     """``(setup, step)``: ``setup(key)`` draws what ``ot_sample_size.py`` draws for that key (the
     prior, the fresh particles and their observations, the two floors) and initialises the
     update; ``step(key, state, ...)`` trains one chunk and scores it."""
     model = squared_observation(dim=dim, noise=NOISE, observation_scale=SCALE, static=True)
-    update = otf.ot(**dict(options, num_iterations=chunk))
+    update = otf.ot(**dict(options, num_iterations=chunk), potential_optimizer=optimizer)
     w1, exact_samples = exact_scoring(dim)
     y = jnp.full((dim,), OBSERVATION)
 
@@ -111,14 +129,21 @@ def main():
     parser.add_argument("--chunks", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="which of ot_sample_size.py's 2 seeds")
     parser.add_argument("--options", default="{}", help="ot() options as JSON (not num_iterations)")
+    parser.add_argument("--potential-optimizer", default=None, help="f's optimiser (module docstring)")
     parser.add_argument("--out", default="benchmarks/results/ot_dimension_size_rule/training_curve.json")
     parser.add_argument("--plot", default=None, help="draw the records of --out into this PNG instead")
     args = parser.parse_args()
     if args.plot:
         return plot(json.load(open(args.out)), args.plot)
     options = json.loads(args.options)
+    optimizer = None
+    if args.potential_optimizer:
+        optimizer = potential_optimizer(args.potential_optimizer, options.get("potential_learning_rate", 3e-4),
+                                         options.get("potential_weight_decay", 1.0))
     setup, step = build(dim=args.dim, num_train=args.train, num_evaluate=args.evaluate, options=options,
-                        chunk=args.chunk)
+                        chunk=args.chunk, optimizer=optimizer)
+    if args.potential_optimizer:  # recorded with the options: the plot's panels are per setting
+        options = dict(options, potential_optimizer=args.potential_optimizer)
     apply_key, state, prior, fresh, simulated, floors = setup(jax.random.split(jax.random.key(2026), 2)[args.seed])
     record = {"dim": args.dim, "train": args.train, "evaluate": args.evaluate, "options": options,
               "chunk": args.chunk, "seed": args.seed, "device": str(jax.devices()[0]),
