@@ -10,6 +10,8 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
   ``local_ot`` is the localised OT filter with the deterministic layer (the LETKF's Gaspari-Cohn
   taper, windows out to its support: 29 observations), fresh networks at every step (T starts as
   the layer) trained for 64 iterations.
+- ``local_ot:K`` or ``local_ot:K:F``: ``local_ot`` with K iterations a step (fresh networks at
+  every step) and f's learning rate F (default 1e-4: f moves little in 64 steps of it).
 - ``layer``: that deterministic layer alone (the network never used): the LETKF itself
   (``tests/test_local_ot.py``).
 - ``letkf_step``, ``layer_step``, ``local_ot_step``: the same three with a step taper of the
@@ -57,6 +59,10 @@ def build(method: str, model):
     if method in ("layer", "layer_step"):  # a loss bound no training meets: every step is the layer alone
         return lorenz96_local_ot(model, 1, taper="step" if method == "layer_step" else "gaspari_cohn",
                                  divergence_threshold=1e-12)
+    if method.startswith("local_ot:"):
+        iterations, *rate = method.split(":")[1:]
+        options = dict(potential_learning_rate=float(rate[0])) if rate else {}
+        return lorenz96_local_ot(model, int(iterations), warm_start=False, **options)
     if method == "local_ot_step":
         return lorenz96_local_ot(model, local["ot_iterations"], taper="step", warm_start=False)
     if method == "local_ot_warm":
@@ -68,7 +74,8 @@ def build(method: str, model):
 
 
 def run(method, model, keys, observations, num_particles):
-    update = build(method, model)
+    """``method``: a name (``build``) or an update."""
+    update = build(method, model) if isinstance(method, str) else method
 
     @jax.jit
     def filters(keys, observations):

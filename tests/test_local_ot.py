@@ -17,6 +17,7 @@ from ot_filter.localisation import local_windows, points, ring, taper_support
 from ot_filter.models import squared_observation
 from ot_filter.reference import squared_observation_posterior
 from ot_filter.transport.saddle import enkf_gain, transport_input
+from ot_filter.transport.standardisation import Standardisation
 from ot_filter.updates.local_ot import (
     LocalOTSettings,
     _layer_weights,
@@ -142,6 +143,35 @@ def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain
     np.testing.assert_allclose(context[0].reshape(size, window, levels), deviations[np.asarray(windows.state)],
                                atol=1e-12)
     np.testing.assert_allclose(np.asarray(data.gain)[:, :, 2 * reach:], 0.0, atol=1e-10)
+
+
+def test_the_location_context_is_each_windows_mean_and_spread_in_model_coordinates(x64):
+    """Per window: arcsinh of the mean and log of the spread of its state coordinates, then of
+    its observations (0 on a missing one), after the quantiles; constant over the particles, so
+    no gain. A model coordinate's location is what standardisation removes and y = x^2 needs."""
+    num, size, observed = 60, 8, np.arange(0, 8, 2)
+    windows, xs, ys, y = _ring_data(jax.random.PRNGKey(4), num, size, observed, 2.0, 1.0)
+    scaling = Standardisation(jnp.linspace(-5.0, 9.0, size), jnp.linspace(0.5, 2.0, size),
+                              jnp.linspace(1.0, 80.0, len(observed)), jnp.linspace(3.0, 30.0, len(observed)))
+    seen = jnp.ones(len(observed), bool).at[1].set(False)
+    data = _local_data(_numbers(windows, 2), xs, ys, y, seen, jnp.ones(num, bool), location=scaling)
+    reach, window = windows.observations.shape[1], windows.state.shape[1]
+    features = np.asarray(data.y)[:, :, 2 * reach + 2 * window:]  # [N, n, 2 (S + K)]
+    np.testing.assert_array_equal(features, np.broadcast_to(features[0], features.shape))
+    state, slots = np.asarray(windows.state), np.asarray(windows.observations)
+    mask = np.asarray(windows.observations_valid) & np.asarray(seen)[slots]
+    expected = np.concatenate([np.arcsinh(np.asarray(scaling.x_mean))[state],
+                               np.log(np.asarray(scaling.x_scale))[state],
+                               np.where(mask, np.arcsinh(np.asarray(scaling.y_mean))[slots], 0.0),
+                               np.where(mask, np.log(np.asarray(scaling.y_scale))[slots], 0.0)], axis=1)
+    np.testing.assert_allclose(features[0], expected, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(data.gain)[:, :, 2 * reach:], 0.0, atol=1e-10)
+    # The networks' input grows by those 2 (S + K) columns.
+    model = otf.models.lorenz96(dim=size, observed=observed)
+    prior = jax.random.normal(jax.random.PRNGKey(0), (30, size))
+    plain, located = (local_ot(local_windows(model.geometry, 2.0, 1.0), location_context=flag).init(
+        jax.random.PRNGKey(0), prior, model).gain.shape[-1] for flag in (False, True))
+    assert located - plain == 2 * (window + reach)
 
 
 def test_divergence_falls_back_to_the_local_enkf():

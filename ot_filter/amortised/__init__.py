@@ -2,9 +2,11 @@
 simulated trajectories (``training``, ``bank``), chosen among candidates by how well its filter
 tracks simulated truths (``selection``), saved and loaded with its record (``storage``), and
 filtered with by ``ot_filter.amortised_ot`` (no training online, or a few warm-started
-iterations per step)."""
+iterations per step). ``local``: the localised update's shared map trained offline the same way
+(filtered with by ``ot_filter.local_ot(..., initial_map=...)``)."""
 
 from ot_filter.amortised.bank import ForecastBank, bank_batch, forecast_bank, split_bank
+from ot_filter.amortised.local import LocalBank, local_bank, local_bank_batch, train_local_map
 from ot_filter.amortised.selection import MapScore, score_map, select_map
 from ot_filter.amortised.storage import MapMismatchError, load_map, save_map
 from ot_filter.amortised.training import (
@@ -23,6 +25,7 @@ from ot_filter.amortised.training import (
 __all__ = [
     "AmortisedMap",
     "ForecastBank",
+    "LocalBank",
     "MapConfig",
     "MapMismatchError",
     "MapScore",
@@ -30,6 +33,8 @@ __all__ = [
     "bank_batch",
     "collect_forecasts",
     "forecast_bank",
+    "local_bank",
+    "local_bank_batch",
     "load_map",
     "map_recipe",
     "save_map",
@@ -39,6 +44,7 @@ __all__ = [
     "stack_banks",
     "train_amortised",
     "train_amortised_seeds",
+    "train_local_map",
     "train_map",
     "train_maps",
 ]

@@ -77,7 +77,7 @@ from ot_filter.localisation import TAPERS, LocalWindows, taper_support, taper_we
 from ot_filter.model import StateSpaceModel
 from ot_filter.transport.divergence import diverged as divergence_test
 from ot_filter.transport.divergence import predictive_z as predictive_check
-from ot_filter.transport.saddle import Batch, TrainingState, enkf_gain, transport_input
+from ot_filter.transport.saddle import Batch, SaddleParams, TrainingState, enkf_gain, transport_input
 from ot_filter.transport.standardisation import Standardisation, identity_standardisation
 from ot_filter.updates.ot import (
     OTInfo,
@@ -89,6 +89,7 @@ from ot_filter.updates.ot import (
     networks,
     prior_data,
     recipe,
+    starting_training,
     train,
 )
 
@@ -145,9 +146,11 @@ def local_ot(
     trend_threshold: float = 10.0,
     inflation: float = 1.0,
     prior_context: int = 8,
+    location_context: bool = False,
     potential_learning_rate: float = 1e-4,
     potential_weight_decay: float = 1.0,
     transport_learning_rate: float = 1e-3,
+    initial_map: SaddleParams | None = None,
 ) -> LocalOTUpdate:
     """Builds the localised OT update.
 
@@ -166,6 +169,16 @@ def local_ot(
         serves coordinates whose priors differ in shape (a filter's coordinates after different
         observations), not only in location and scale (default 8). 0: the coordinates' local
         problems are taken to be alike.
+      location_context: the networks also read where each window sits in the model's own
+        coordinates: arcsinh of the mean and the log of the spread of its state coordinates
+        and of its observations' simulated values (what standardisation hides: with y = x^2,
+        a window near 0 and one at 8 look alike once standardised, yet one observation is
+        ambiguous in sign and the other sharp).
+      initial_map: the shared networks' parameters trained offline (``amortised.train_local_map``,
+        built with the same sizes and windows): every training starts from them (with fresh
+        optimiser states) instead of random ones: the first, one after a divergence, and every
+        step's with ``warm_start=False``. ``num_iterations=0`` then uses the map as is (one
+        forward pass a step, no training).
       Every other argument is ``ot()``'s (``batch_size`` counts local pairs), with this update's
       own defaults: width 32, batches of 128 local pairs and f's rate 1e-4, whatever n (the
       local problem's size does not grow with n; ``ot()``'s size rule does not apply).
@@ -175,8 +188,9 @@ def local_ot(
                         f"local_windows(model.geometry, radius, state_radius), got {type(windows).__name__}")
     # The local map's sizes are given (its inputs are a window, whatever n): not ot()'s rule.
     batch_size, width = check_int("batch_size", batch_size, minimum=2), check_int("width", width)
+    as_is = initial_map is not None and not isinstance(num_iterations, tuple) and num_iterations == 0
     settings, structure = recipe(
-        num_iterations=num_iterations, batch_size=batch_size, inner_steps=inner_steps, width=width,
+        num_iterations=1 if as_is else num_iterations, batch_size=batch_size, inner_steps=inner_steps, width=width,
         num_blocks=num_blocks, activation=activation, enkf_layer=enkf_layer,
         potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
         warm_start=warm_start, divergence_threshold=divergence_threshold,
@@ -189,6 +203,15 @@ def local_ot(
         raise ValueError(f"taper must be one of {TAPERS}, got {taper!r}")
     if taper != "step" and not structure.deterministic_layer:
         raise ValueError("taper weighs the deterministic layer's observations: give enkf_layer='deterministic'")
+    structure = structure._replace(location_context=bool(location_context))
+    if initial_map is not None:
+        if not isinstance(initial_map, SaddleParams):
+            raise TypeError(f"initial_map must be a SaddleParams (amortised.train_local_map), got "
+                            f"{type(initial_map).__name__}")
+        settings = settings._replace(anchor=initial_map)
+        structure = structure._replace(anchored=True, restart=not warm_start)
+        if as_is:
+            structure = structure._replace(first_iterations=0, floor_iterations=0)
     levels = (jnp.arange(check_int("prior_context", prior_context, minimum=0)) + 0.5) / max(prior_context, 1)
     numbers = LocalOTSettings(settings, windows, levels, _layer_weights(windows, taper))
     return LocalOTUpdate(
@@ -211,10 +234,12 @@ def _sizes(windows: LocalWindows) -> tuple[int, int, int]:
     return windows.state.shape[0], windows.state.shape[1], windows.observations.shape[1]
 
 
-def _conditioning_size(numbers: LocalOTSettings) -> int:
-    """Width of the networks' conditioning input: local observations, their mask, the context."""
+def _conditioning_size(numbers: LocalOTSettings, structure: OTStructure) -> int:
+    """Width of the networks' conditioning input: local observations, their mask, the context
+    (prior quantiles, and the location features of ``location_context``)."""
     _, window, reach = _sizes(numbers.windows)
-    return 2 * reach + window * numbers.context_levels.shape[0]
+    location = 2 * (window + reach) if structure.location_context else 0
+    return 2 * reach + window * numbers.context_levels.shape[0] + location
 
 
 def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
@@ -232,14 +257,36 @@ def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
     dtype = particles.dtype
     return LocalOTState(
         log_weights=uniform_log_weights(particles),
-        training=init_training(numbers.ot, structure, key, window, _conditioning_size(numbers), dtype),
+        training=_starting_training(numbers, structure, key, window, dtype),
         standardisation=identity_standardisation(n, m, dtype),
-        gain=jnp.zeros((n, window, _conditioning_size(numbers)), dtype),
+        gain=jnp.zeros((n, window, _conditioning_size(numbers, structure)), dtype),
         simulated_observations=jnp.zeros((particles.shape[0], m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
         innovation_trend=jnp.ones((), dtype),
     )
+
+
+def local_update_parts(update: LocalOTUpdate) -> tuple[LocalOTSettings, OTStructure]:
+    """``(numbers, structure)`` a ``local_ot()`` update was built with (the offline trainer's)."""
+    if not isinstance(update, LocalOTUpdate):
+        raise TypeError(f"update must be a local_ot() update, got {type(update).__name__}")
+    return update.apply.args[0], update.apply.func.keywords["structure"]
+
+
+def _starting_training(numbers: LocalOTSettings, structure: OTStructure, key: Array, window: int,
+                       dtype) -> TrainingState:
+    """Random networks, or the offline map's (``initial_map``) after checking its shapes."""
+    conditioning = _conditioning_size(numbers, structure)
+    if structure.anchored:
+        expected = jax.eval_shape(lambda k: init_training(numbers.ot, structure, k, window, conditioning, dtype).params,
+                                  key)
+        given = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(jnp.shape(leaf), dtype), numbers.ot.anchor)
+        if jax.tree.structure(given) != jax.tree.structure(expected) or any(
+                a.shape != b.shape for a, b in zip(jax.tree.leaves(given), jax.tree.leaves(expected))):
+            raise ValueError("initial_map does not fit these networks and windows: train it with the same width, "
+                             "num_blocks, windows and prior_context")
+    return starting_training(numbers.ot, structure, key, window, conditioning, dtype)
 
 
 def local_ot_apply(numbers: LocalOTSettings, key: Array, state: LocalOTState, particles: Array,
@@ -270,7 +317,8 @@ def local_prior_quantiles(xs: Array, active: Array, levels: Array) -> Array:
 
 
 def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Array, observed: Array,
-                active: Array, layer: tuple[Array, Array] | None = None) -> _LocalData:
+                active: Array, layer: tuple[Array, Array] | None = None,
+                location: Standardisation | None = None) -> _LocalData:
     """Windows of standardised particles ``xs[N, n]`` and observations ``ys[N, m]``; missing
     components (``observed[m]`` False) and padding are 0 with mask 0. ``layer``: the standardised
     ``h(X)[N, m]`` and noise variances ``[m]`` of the deterministic layer (None: perturbed)."""
@@ -281,6 +329,8 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     # (then the context costs the networks nothing), the shape difference where they are not.
     quantiles = quantiles - jnp.mean(quantiles, axis=0)
     context = (quantiles[windows.state] * windows.state_valid[..., None]).reshape(mask.shape[0], -1)
+    if location is not None:
+        context = jnp.concatenate([context, _location_features(location, windows, mask)], axis=-1)
 
     def local_y(y_row):
         return jnp.concatenate([y_row[windows.observations] * mask, mask, context], axis=-1)
@@ -293,6 +343,18 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     layer_x, layer_y, gain = _local_transforms(x, *layer, mask * numbers.layer_weights, windows.observations,
                                                active, y.shape[-1])
     return _LocalData(x, y, local_y(y_standard), gain, layer_x, layer_y)
+
+
+def _location_features(scaling: Standardisation, windows: LocalWindows, mask: Array) -> Array:
+    """``[n, 2 (S + K)]``: arcsinh of the mean and log of the spread of each window's state
+    coordinates and observations (the ensemble's, in the model's coordinates; 0 on padding and
+    missing slots). arcsinh keeps a mean of 100 (an observation x^2) an input of about 5."""
+    state = windows.state_valid.astype(scaling.x_mean.dtype)
+    x = jnp.concatenate([jnp.arcsinh(scaling.x_mean)[windows.state] * state,
+                         jnp.log(scaling.x_scale)[windows.state] * state], axis=-1)
+    y = jnp.concatenate([jnp.arcsinh(scaling.y_mean)[windows.observations] * mask,
+                         jnp.log(scaling.y_scale)[windows.observations] * mask], axis=-1)
+    return jnp.concatenate([x, y], axis=-1)
 
 
 def _local_transforms(x: Array, predicted: Array, noise_variance: Array, weights: Array, observations: Array,
@@ -348,21 +410,31 @@ def _layer_inputs(structure: OTStructure, model: StateSpaceModel, particles: Arr
     return predicted, variance / scaling.y_scale**2
 
 
+def local_pairs(numbers: LocalOTSettings, structure: OTStructure, key: Array, log_weights: Array, particles: Array,
+                observation: Array, model: StateSpaceModel):
+    """``(PriorData, local pairs)`` of a forecast ensemble: inflated, observations simulated,
+    standardised, cut into windows, with the layer's inputs (what the shared map trains on and
+    moves; the offline trainer's bank holds these of many ensembles)."""
+    prior = prior_data(numbers.ot, key, log_weights, particles, observation, model)
+    y_standard = jnp.where(prior.observed, prior.scaling.standardise_y(observation), 0.0)
+    data = _local_data(numbers, prior.xs, prior.ys, y_standard, prior.observed, prior.active,
+                       _layer_inputs(structure, model, prior.particles, prior.scaling),
+                       prior.scaling if structure.location_context else None)
+    return prior, data
+
+
 @jax.jit(static_argnames=("structure",))
 def _apply(numbers, key, state, particles, observation, model, structure):
     """Simulate, standardise, cut windows, train the shared map, transport, check, fall back."""
     settings = numbers.ot
     num, n = particles.shape
     _, window, _ = _sizes(numbers.windows)
-    conditioning = _conditioning_size(numbers)
+    conditioning = _conditioning_size(numbers, structure)
     simulate_key, train_key, check_key, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
 
-    prior = prior_data(settings, simulate_key, state.log_weights, particles, observation, model)
+    prior, data = local_pairs(numbers, structure, simulate_key, state.log_weights, particles, observation, model)
     particles, simulated, active, num_active, scaling, observed, xs, ys = prior
-    y_standard = jnp.where(observed, scaling.standardise_y(observation), 0.0)
-    data = _local_data(numbers, xs, ys, y_standard, observed, active,
-                       _layer_inputs(structure, model, particles, scaling))
     active_index = jnp.argsort(~active, stable=True)
 
     def sample_batch(batch_key):
@@ -386,8 +458,9 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     fallback = scaling.restore_x(_move(data, None, True))
     posterior = use_where(~diverged, scaling.restore_x(moved), fallback)
     posterior = jnp.where(jnp.any(observed), posterior, particles)
-    fresh = init_training(settings, structure, reset_key, window, conditioning, particles.dtype)
-    training = use_where(diverged, fresh, training)
+    if structure.first_iterations:  # a map used as is has nothing to restart
+        fresh = _starting_training(numbers, structure, reset_key, window, particles.dtype)
+        training = use_where(diverged, fresh, training)
 
     sample = jax.random.randint(jax.random.fold_in(check_key, 1), (num,), 0, n)
     potential_values = potential_net.apply(params.potential, data.x[jnp.arange(num), sample],
@@ -438,6 +511,7 @@ def _transport(numbers, state, particles, observation, model, structure):
     data = _local_data(numbers, scaling.standardise_x(particles),
                        jnp.where(observed, scaling.standardise_y(state.simulated_observations), 0.0),
                        jnp.where(observed, scaling.standardise_y(observation), 0.0), observed, active,
-                       _layer_inputs(structure, model, particles, scaling))
+                       _layer_inputs(structure, model, particles, scaling),
+                       scaling if structure.location_context else None)
     params = state.training.params.transport
     return scaling.restore_x(_move(data, lambda x, y: transport_net.apply(params, x, y), structure.enkf_layer))

@@ -153,6 +153,7 @@ class OTStructure(NamedTuple):
     #                       and after a divergence; later ones are warm-started as ``ot()``'s)
     contextual: bool = False  # the networks also read the prior's context (``transport/context.py``)
     deterministic_layer: bool = False  # the EnKF layer is ``saddle.DeterministicLayer`` (local_ot)
+    location_context: bool = False  # (local_ot) the networks read each window's location and spread
 
 
 class OTState(NamedTuple):

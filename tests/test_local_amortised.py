@@ -1,0 +1,100 @@
+"""The localised OT update with an offline-trained shared map (``amortised.local``,
+``local_ot(initial_map=...)``)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ot_filter as otf
+from ot_filter.amortised.local import local_bank, local_bank_batch, train_local_map
+from ot_filter.localisation import local_windows, taper_support
+from ot_filter.transport.saddle import SaddleParams
+
+
+def _tree_equal(a, b):
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_an_untrained_map_used_as_is_is_the_letkf_and_stays_as_given(x64):
+    """T's last layer starts at zero: an initial map straight from ``init`` moves every particle to
+    the deterministic layer's output, the tapered LETKF; with no iterations nothing trains, and
+    the state holds the given parameters, not a random draw."""
+    model = otf.models.lorenz96(dim=12, observed=np.arange(0, 12, 2))
+    prior = 3.0 + 2.0 * jax.random.normal(jax.random.PRNGKey(0), (40, 12))
+    observation = jax.vmap(model.observation_function)(prior[:1])[0] + 0.5
+    radius = 4.5
+    options = dict(enkf_layer="deterministic", taper="gaspari_cohn", inflation=1.1)
+    windows = local_windows(model.geometry, radius)
+    given = otf.local_ot(windows, num_iterations=1, **options).init(jax.random.PRNGKey(5), prior, model).training.params
+    update = otf.local_ot(windows, num_iterations=0, initial_map=given, **options)
+    state = update.init(jax.random.PRNGKey(1), prior, model)
+    assert _tree_equal(state.training.params, given)  # another key would draw other parameters
+    posterior, state, info = update.apply(jax.random.PRNGKey(2), state, prior, observation, model)
+    assert not bool(info.diverged)
+    assert _tree_equal(state.training.params, given)
+    assert info.loss.shape == (0,)
+    letkf = otf.letkf(otf.localisation(model.geometry, radius / taper_support(1.0, "gaspari_cohn"),
+                                       taper="gaspari_cohn"), inflation=1.1)
+    expected, _, _ = letkf.apply(jax.random.PRNGKey(3), letkf.init(jax.random.PRNGKey(3), prior, model),
+                                 prior, observation, model)
+    np.testing.assert_allclose(posterior, expected, rtol=1e-8, atol=1e-8)
+
+
+def test_a_map_of_other_sizes_is_refused():
+    model = otf.models.lorenz96(dim=8)
+    prior = jax.random.normal(jax.random.PRNGKey(0), (20, 8))
+    windows = local_windows(model.geometry, 1.0)
+    narrow = otf.local_ot(windows, width=16).init(jax.random.PRNGKey(0), prior, model).training.params
+    with pytest.raises(ValueError, match="initial_map does not fit"):
+        otf.local_ot(windows, width=32, num_iterations=0, initial_map=narrow).init(jax.random.PRNGKey(0), prior, model)
+    with pytest.raises(TypeError, match="initial_map must be a SaddleParams"):
+        otf.local_ot(windows, initial_map={"potential": None})
+    with pytest.raises(ValueError, match="num_iterations must be a positive int"):
+        otf.local_ot(windows, num_iterations=0)  # 0 iterations needs a map to use
+
+
+def test_bank_batches_pair_a_copy_of_the_same_ensemble_and_coordinate():
+    model = otf.models.lorenz96(dim=6)
+    update = otf.local_ot(local_windows(model.geometry, 1.0), enkf_layer="deterministic")
+    # Ensemble e is centred at 10 e: a row's x and xbar come from the same ensemble (and are
+    # standardised by its own scaling, so both are O(1)) only if the batch pairs them right.
+    forecasts = 10.0 * jnp.arange(3.0)[:, None, None] + jax.random.normal(jax.random.PRNGKey(0), (3, 30, 6))
+    bank = local_bank(jax.random.PRNGKey(1), update, model, forecasts)
+    assert bank.x.shape[:3] == (3, 30, 6) and bank.gain.shape[:2] == (3, 6)
+    batch = local_bank_batch(jax.random.PRNGKey(2), bank, 64, True)
+    assert batch.x.shape == (64, bank.x.shape[-1]) and batch.gain.shape == (64,) + bank.gain.shape[2:]
+    assert float(jnp.max(jnp.abs(batch.x))) < 5 and float(jnp.max(jnp.abs(batch.xbar))) < 5
+    # Each row's gain is one of its bank's [ensemble, coordinate] gains.
+    gains = np.asarray(bank.gain).reshape(-1, *bank.gain.shape[2:])
+    for row in np.asarray(batch.gain)[:8]:
+        assert np.min(np.abs(gains - row).reshape(len(gains), -1).max(axis=1)) == 0.0
+
+
+def test_an_offline_local_map_learns_the_gaussian_posterior():
+    """Independent N(0, 1) coordinates, each observed with N(0, 1) noise, no layer: the shared
+    map trained on a bank of prior ensembles must move a fresh prior to the exact posterior,
+    N(y / 2, 1 / 2), with no training online (an untrained map would leave it at N(0, 1))."""
+    dim, num = 8, 200
+    model = otf.models.lorenz96(dim=dim, observation_noise_std=1.0)
+    windows = local_windows(model.geometry, 0.0)
+    template = otf.local_ot(windows, batch_size=256, potential_learning_rate=3e-4, prior_context=0)
+    forecasts = jax.random.normal(jax.random.PRNGKey(0), (16, num, dim))
+    bank = local_bank(jax.random.PRNGKey(1), template, model, forecasts)
+    params, trace = train_local_map(jax.random.PRNGKey(2), template, bank, 3000)
+    assert isinstance(params, SaddleParams) and bool(trace.finite)
+    update = otf.local_ot(windows, num_iterations=0, initial_map=params, prior_context=0)
+    prior = jax.random.normal(jax.random.PRNGKey(3), (1000, dim))
+    observation = jnp.ones(dim)
+    posterior, _, info = update.apply(jax.random.PRNGKey(4), update.init(jax.random.PRNGKey(5), prior, model),
+                                      prior, observation, model)
+    assert not bool(info.diverged)
+    # The exact map moves each particle to 1/2 + x / sqrt(2) (the Gaussian OT map). Compared on
+    # the same particles, so no sampling error enters; what remains is the map's own. Measured
+    # over three training seeds: at most 0.055 on a coordinate's mean, 0.056 on its spread,
+    # 0.078 per particle (root mean square). Untrained (the identity): 0.5, 0.29 and 0.58.
+    exact = 0.5 + np.sqrt(0.5) * np.asarray(prior)
+    moved = np.asarray(posterior)
+    np.testing.assert_allclose(moved.mean(axis=0), exact.mean(axis=0), atol=0.08)
+    np.testing.assert_allclose(moved.std(axis=0), exact.std(axis=0), atol=0.08)
+    assert np.sqrt(np.mean((moved - exact) ** 2)) < 0.12
