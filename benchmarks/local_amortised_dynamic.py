@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from local_amortised_l96 import offline_map
 
 import ot_filter as otf
 from ot_filter.amortised import collect_forecasts
-from ot_filter.amortised.local import local_bank, train_local_map
 from ot_filter.experiments._common import simulate_truths, write_text_atomic
 from ot_filter.experiments.dynamic_example import dynamic_model, exact_comparison, exact_floor, exact_posteriors
 from ot_filter.localisation import local_windows
@@ -54,25 +54,16 @@ def main():
         return otf.local_ot(windows, num_iterations=(1024, 64), potential_optimizer=optax.adamw(3e-4, weight_decay=1.0),
                             **sizes)
 
-    start = time.perf_counter()
-    forecasts = collect_forecasts(jax.random.key(12), model, online(), num_simulations=args.bank_simulations,
-                                  num_steps=STEPS, num_particles=PARTICLES).particles
     template = otf.local_ot(windows, batch_size=args.batch, potential_learning_rate=3e-4, **sizes)
-    bank = jax.block_until_ready(local_bank(jax.random.key(13), template, model, forecasts))
-    bank_seconds = time.perf_counter() - start
-    start = time.perf_counter()
-    params, trace = jax.block_until_ready(train_local_map(jax.random.key(14), template, bank, args.iterations))
-    train_seconds = time.perf_counter() - start
-    loss = np.asarray(trace.loss)
-    curve = [float(np.mean(loss[i:i + 1000])) for i in range(0, len(loss), 1000)]
-    print(f"bank of {forecasts.shape[0]} ensembles in {bank_seconds:.0f} s; {args.iterations} iterations in "
-          f"{train_seconds:.0f} s; J per 1000: {np.round(curve, 4).tolist()}", flush=True)
+    params, offline = offline_map(
+        jax.random.key(13), jax.random.key(14), template, model, args.iterations,
+        lambda: collect_forecasts(jax.random.key(12), model, online(), num_simulations=args.bank_simulations,
+                                  num_steps=STEPS, num_particles=PARTICLES).particles)
 
     _, observations = simulate_truths(jax.random.key(11), model, STEPS, args.simulations)
     reference = exact_posteriors(observations)
     floor = exact_floor(jax.random.key(15), PARTICLES, reference)["floor_w1"][:, 1:].mean()
-    record = {"setting": {k: v for k, v in vars(args).items() if k != "out"}, "bank_ensembles": int(forecasts.shape[0]),
-              "bank_seconds": bank_seconds, "train_seconds": train_seconds, "loss_per_1000": curve,
+    record = {"setting": {k: v for k, v in vars(args).items() if k != "out"}, **offline,
               "floor_w1": float(floor), "rows": {}}
     print(f"floor W1 {float(floor):.4f}", flush=True)
     for method in args.methods.split(","):

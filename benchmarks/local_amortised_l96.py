@@ -43,6 +43,25 @@ from ot_filter.models import lorenz96  # noqa: E402
 from ot_filter.runner.catalogue import LORENZ96_LOCAL, cell_key, lorenz96_local_ot, lorenz96_update  # noqa: E402
 
 
+def offline_map(bank_key, train_key, template, model, iterations: int, forecasts):
+    """The offline stage: ``forecasts()`` (an [E, N, n] array), their local pairs for the
+    ``template`` update and its map trained ``iterations`` times. Returns ``(params, record)``:
+    the bank's size, the seconds of both parts and J averaged per 1,000 iterations."""
+    start = time.perf_counter()
+    ensembles = forecasts()
+    bank = jax.block_until_ready(local_bank(bank_key, template, model, ensembles))
+    bank_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    params, trace = jax.block_until_ready(train_local_map(train_key, template, bank, iterations))
+    train_seconds = time.perf_counter() - start
+    loss = np.asarray(trace.loss)
+    curve = [float(np.mean(loss[i:i + 1000])) for i in range(0, len(loss), 1000)]
+    print(f"bank of {ensembles.shape[0]} ensembles in {bank_seconds:.0f} s; {iterations} iterations in "
+          f"{train_seconds:.0f} s; J per 1000: {np.round(curve, 4).tolist()}", flush=True)
+    return params, {"bank_ensembles": int(ensembles.shape[0]), "bank_seconds": bank_seconds,
+                    "train_seconds": train_seconds, "loss_per_1000": curve}
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bank-simulations", type=int, default=8)
@@ -61,30 +80,21 @@ def main():
     particles = 100
 
     # Offline: the bank and the map.
-    start = time.perf_counter()
-    forecasts = collect_forecasts(jax.random.key(7), model, lorenz96_update("letkf", model),
-                                  num_simulations=args.bank_simulations, num_steps=args.bank_steps,
-                                  num_particles=particles, burn_in=50).particles
     sizes = dict(width=args.width, location_context=args.location)
     template = lorenz96_local_ot(model, 1, warm_start=False, batch_size=args.batch,
                                  potential_learning_rate=args.potential_rate, **sizes)
-    bank = jax.block_until_ready(local_bank(jax.random.key(8), template, model, forecasts))
-    bank_seconds = time.perf_counter() - start
-    start = time.perf_counter()
-    params, trace = jax.block_until_ready(train_local_map(jax.random.key(9), template, bank, args.iterations))
-    train_seconds = time.perf_counter() - start
-    loss = np.asarray(trace.loss)
-    curve = [float(np.mean(loss[i:i + 1000])) for i in range(0, len(loss), 1000)]
-    print(f"bank of {forecasts.shape[0]} ensembles in {bank_seconds:.0f} s; {args.iterations} iterations in "
-          f"{train_seconds:.0f} s; J per 1000: {np.round(curve, 4).tolist()}", flush=True)
+    params, offline = offline_map(
+        jax.random.key(8), jax.random.key(9), template, model, args.iterations,
+        lambda: collect_forecasts(jax.random.key(7), model, lorenz96_update("letkf", model),
+                                  num_simulations=args.bank_simulations, num_steps=args.bank_steps,
+                                  num_particles=particles, burn_in=50).particles)
 
     truth_key, filter_key = jax.random.split(cell_key(0, 40, 0))  # the runner's truths (ot_lorenz96.py)
     states, observations = simulate_truths(truth_key, model, args.steps, args.simulations)
     keys = jax.random.split(filter_key, args.simulations)
     late = slice(args.steps // 2, None)
     record = {"setting": {k: v for k, v in vars(args).items() if k != "out"}, "local": LORENZ96_LOCAL,
-              "bank_ensembles": int(forecasts.shape[0]), "bank_seconds": bank_seconds, "train_seconds": train_seconds,
-              "loss_per_1000": curve, "rows": {}}
+              **offline, "rows": {}}
     for method in args.methods.split(","):
         if method in ("letkf", "local_ot"):
             update = method
