@@ -53,6 +53,10 @@ coordinate's own transform mixes its neighbours' anomalies differently, the anal
 cross-covariances, and the filter diverged. The ensemble transform acts on the members, which
 neighbouring windows share.
 
+Offline map (``initial_map``): where the windows' local problems are alike from step to step,
+the shared map can be trained once on the local pairs of many forecast ensembles
+(``amortised.local``) and every step starts from it, or uses it as is.
+
 Training has no smoothed prior and no fresh observations: the observations of a jittered state
 would need the whole state, and there are N n local pairs (their small-N behaviour, N = 100 on
 the static example, is not measured yet). The numbers and the rest of the
