@@ -55,20 +55,27 @@ def test_a_map_of_other_sizes_is_refused():
 
 
 def test_bank_batches_pair_a_copy_of_the_same_ensemble_and_coordinate():
+    """Each row: a pair (x, y) of one (ensemble, particle, coordinate), its independent copy from
+    the same ensemble and coordinate (another particle drawn), and that window's gain."""
     model = otf.models.lorenz96(dim=6)
     update = otf.local_ot(local_windows(model.geometry, 1.0), enkf_layer="deterministic")
-    # Ensemble e is centred at 10 e: a row's x and xbar come from the same ensemble (and are
-    # standardised by its own scaling, so both are O(1)) only if the batch pairs them right.
     forecasts = 10.0 * jnp.arange(3.0)[:, None, None] + jax.random.normal(jax.random.PRNGKey(0), (3, 30, 6))
     bank = local_bank(jax.random.PRNGKey(1), update, model, forecasts)
     assert bank.x.shape[:3] == (3, 30, 6) and bank.gain.shape[:2] == (3, 6)
     batch = local_bank_batch(jax.random.PRNGKey(2), bank, 64, True)
     assert batch.x.shape == (64, bank.x.shape[-1]) and batch.gain.shape == (64,) + bank.gain.shape[2:]
-    assert float(jnp.max(jnp.abs(batch.x))) < 5 and float(jnp.max(jnp.abs(batch.xbar))) < 5
-    # Each row's gain is one of its bank's [ensemble, coordinate] gains.
-    gains = np.asarray(bank.gain).reshape(-1, *bank.gain.shape[2:])
-    for row in np.asarray(batch.gain)[:8]:
-        assert np.min(np.abs(gains - row).reshape(len(gains), -1).max(axis=1)) == 0.0
+
+    def where(table, rows):  # (ensemble, particle, coordinate) of each row, found by value
+        flat = np.asarray(table).reshape(-1, table.shape[-1])
+        found = [np.flatnonzero(np.all(flat == row, axis=1)) for row in np.asarray(rows)]
+        assert all(len(f) == 1 for f in found)  # continuous draws: every window is unique
+        return np.stack(np.unravel_index(np.concatenate(found), table.shape[:3]), axis=1)
+
+    pair, copy = where(bank.x, batch.x), where(bank.layer_x, batch.xbar)
+    np.testing.assert_array_equal(where(bank.y, batch.y), pair)  # y is x's own observation
+    np.testing.assert_array_equal(pair[:, [0, 2]], copy[:, [0, 2]])  # same ensemble and coordinate
+    assert len(np.unique(pair[:, 0])) == 3 and np.mean(pair[:, 1] != copy[:, 1]) > 0.8  # mixed; other particles
+    np.testing.assert_array_equal(batch.gain, np.asarray(bank.gain)[pair[:, 0], pair[:, 2]])
 
 
 def test_an_offline_local_map_learns_the_gaussian_posterior():
