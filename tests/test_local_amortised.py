@@ -1,6 +1,8 @@
 """The localised OT update with an offline-trained shared map (``amortised.local``,
 ``local_ot(initial_map=...)``)."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -105,3 +107,59 @@ def test_an_offline_local_map_learns_the_gaussian_posterior():
     np.testing.assert_allclose(moved.mean(axis=0), exact.mean(axis=0), atol=0.08)
     np.testing.assert_allclose(moved.std(axis=0), exact.std(axis=0), atol=0.08)
     assert np.sqrt(np.mean((moved - exact) ** 2)) < 0.12
+
+
+def test_a_stored_local_map_reloads_bit_identically_filters_identically_and_refuses_another_model(tmp_path):
+    """``train_local_amortised`` (chunks, held-out validation), ``save_local_map`` and
+    ``load_local_map``: the reloaded parameters are the same bytes, the filter from them gives
+    the same particles, and a map asked for as another model, or as a global map, is refused."""
+    from ot_filter.amortised import (LocalMapConfig, MapMismatchError, amortised_local_ot, load_local_map, load_map,
+                                     save_local_map, train_local_amortised)
+
+    dim = 6
+    model = otf.models.lorenz96(dim=dim, observation_noise_std=1.0)
+    config = LocalMapConfig("ring-6", dim, dim, radius=1.0, width=16, batch_size=64)
+    forecasts = jax.random.normal(jax.random.PRNGKey(0), (10, 30, dim))
+    trained, history = train_local_amortised(jax.random.PRNGKey(1), model, config, forecasts, 40, chunks=4)
+    np.testing.assert_array_equal(history.iterations, [10, 20, 30, 40])
+    assert np.all(np.isfinite(history.validation_loss)) and history.validation_loss.shape == (4,)
+    assert trained.info["ensembles"] == 8 and trained.info["validation_ensembles"] == 2
+    # the validation J is the map's own: a different map has a different one
+    assert len(np.unique(history.validation_loss)) == 4
+    save_local_map(tmp_path / "map", trained)
+    loaded = load_local_map(tmp_path / "map", model="ring-6", state_dim=dim)
+    assert loaded.config == config and loaded.info == json.loads(json.dumps(trained.info))
+    for got, want in zip(jax.tree.leaves(loaded.params), jax.tree.leaves(trained.params)):
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+    observations = otf.simulate(jax.random.PRNGKey(2), model, 4)[1]
+    runs = [otf.run_filter(jax.random.PRNGKey(3), model, amortised_local_ot(one, model, iterations, batch_size=32),
+                           observations, 30)
+            for one in (trained, loaded) for iterations in (0, 3)]
+    np.testing.assert_array_equal(runs[0].particles, runs[2].particles)  # (a) from either
+    np.testing.assert_array_equal(runs[1].particles, runs[3].particles)  # (b) from either
+    assert not np.array_equal(runs[0].particles, runs[1].particles)  # (b) trained online
+    with pytest.raises(MapMismatchError, match="asked for model 'ring-8'"):
+        load_local_map(tmp_path / "map", model="ring-8")
+    with pytest.raises(MapMismatchError, match="asked for state_dim 8"):
+        load_local_map(tmp_path / "map", state_dim=8)
+    with pytest.raises(MapMismatchError, match="is a local map"):
+        load_map(tmp_path / "map")
+    with pytest.raises(ValueError, match="initial_map does not fit"):  # windows of another radius
+        amortised_local_ot(loaded._replace(config=config._replace(radius=2.0)), model).init(
+            jax.random.PRNGKey(0), forecasts[0], model)
+    with pytest.raises(ValueError, match=r"\[.width.\] are the map.s"):
+        amortised_local_ot(loaded, model, width=32)
+    payload = (tmp_path / "map" / "params.msgpack").read_bytes()
+    (tmp_path / "map" / "params.msgpack").write_bytes(payload[:-1] + bytes([payload[-1] ^ 1]))
+    with pytest.raises(MapMismatchError, match="does not match the SHA-256"):
+        load_local_map(tmp_path / "map")
+
+
+def test_the_dynamic_examples_bank_grows_to_about_4000_local_problems():
+    from ot_filter.experiments.local_amortised import bank_simulations
+
+    # training ensembles (four fifths of simulations x steps) times n: at least 4,000 where the cap allows
+    assert [bank_simulations(dim, 20) for dim in (2, 10, 50, 500)] == [60, 25, 5, 2]
+    for dim in (10, 50):
+        assert bank_simulations(dim, 20) * 20 * 0.8 * dim >= 4000

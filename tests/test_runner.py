@@ -198,3 +198,38 @@ def test_an_amortised_map_is_trained_once_stored_in_the_run_and_reused_by_a_late
                    str(tmp_path / "second"), progress=False, command=["test"], log=lambda line: None)
     assert os.path.getmtime(stored / "map.json") == written
     assert not (tmp_path / "second" / "maps").exists()
+
+
+@pytest.mark.long
+def test_a_local_offline_map_is_trained_once_stored_in_the_run_and_reused_by_a_later_run(tmp_path, monkeypatch):
+    """Methods local_amortised and local_amortised_warm: the first cell trains the dynamic
+    example's local map into the run's maps/ (with its validation curve), later cells and runs
+    reload it, and a map of another n is not taken for this one."""
+    from ot_filter.amortised import load_local_map
+    from ot_filter.experiments import local_amortised
+    from ot_filter.runner import run_experiment
+
+    monkeypatch.setattr(local_amortised, "MAX_SIMULATIONS", 3)  # a small bank: the test is of the plumbing
+    small = dict(particles=(40,), steps=3, simulations=2, block=1, map_iterations=40)
+    first = run_experiment("dynamic", dict(small, methods=local_amortised.METHODS), str(tmp_path / "first"),
+                           progress=False, command=["test"], log=lambda line: None)
+    stored = tmp_path / "first" / "maps" / "dynamic-n2-local"
+    trained = load_local_map(stored, model="dynamic-n2-local", state_dim=2)
+    assert trained.info["iterations"] == 40 and trained.info["simulations"] == 3
+    with np.load(stored / "history.npz") as history:
+        assert history["validation_loss"].shape == (20,) and np.all(np.isfinite(history["validation_loss"]))
+    rows = {row["method"]: row for row in first.metrics["results"]}
+    assert set(rows) == set(local_amortised.METHODS)
+    assert (tmp_path / "first" / "offline_training.png").exists()  # the validation curve
+    for row in rows.values():
+        assert np.all(np.isfinite(row["per_simulation"]["w1"]["values"]))
+    written = os.path.getmtime(stored / "map.json")
+    run_experiment("dynamic", dict(small, methods=("local_amortised",), maps=str(tmp_path / "first" / "maps")),
+                   str(tmp_path / "second"), progress=False, command=["test"], log=lambda line: None)
+    assert os.path.getmtime(stored / "map.json") == written
+    assert not (tmp_path / "second" / "maps").exists()
+    shutil.copytree(stored, tmp_path / "wrong" / "dynamic-n2-local")  # n = 2's map where n = 3's is looked for
+    os.rename(tmp_path / "wrong" / "dynamic-n2-local", tmp_path / "wrong" / "dynamic-n3-local")
+    with pytest.raises(Exception, match="trained for model 'dynamic-n2-local'"):
+        run_experiment("dynamic", dict(small, dim=(3,), methods=("local_amortised",), maps=str(tmp_path / "wrong")),
+                       str(tmp_path / "third"), progress=False, command=["test"], log=lambda line: None)

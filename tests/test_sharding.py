@@ -127,3 +127,37 @@ def test_simulations_are_padded_to_the_devices_and_cut_back():
     assert out["devices"] == 2 and out["shape"] == [5, 20, 3], out
     # Separate programs round differently over 20 chaotic cycles; far below the filter's error.
     assert out["diff"] < 1e-3 and out["total_diff"] < 1e-5, out
+
+
+LAPACK_CHILD = textwrap.dedent(
+    """
+    from ot_filter.experiments._common import host_devices_for_cpu_cores
+    host_devices_for_cpu_cores()
+    import jax, jax.numpy as jnp
+    from ot_filter.experiments._common import compile_and_run, _large_lapack_calls
+
+    def factor(x):  # covariances of 1000 draws of 64 coordinates, and their Cholesky factors
+        return jnp.linalg.cholesky(jnp.swapaxes(x, -1, -2) @ x / x.shape[-2] + jnp.eye(x.shape[-1]))
+
+    assert len(jax.devices()) == 2
+    small = jax.random.normal(jax.random.key(0), (8, 1000, 16))
+    assert not _large_lapack_calls(factor, (small,))
+    for seed in range(4):  # unguarded, about half of these runs hung
+        large = jax.random.normal(jax.random.key(seed), (8, 1000, 64))
+        assert _large_lapack_calls(factor, (large,))
+        out, _ = compile_and_run(factor, large)
+    print("finished", out.shape)
+    """
+)
+
+
+def test_large_lapack_programs_run_on_one_cpu_device():
+    # Two CPU host devices running LAPACK on 64 x 64 matrices at once deadlock (jax 0.10.2, 2
+    # cores), now and then: compile_and_run keeps such a program on one device. Without that
+    # guard this child hung in 4 tries out of 4.
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    code = "import os; os.cpu_count = lambda: 2\n" + LAPACK_CHILD
+    child = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert child.returncode == 0, child.stderr[-3000:]
+    assert "finished (8, 64, 64)" in child.stdout

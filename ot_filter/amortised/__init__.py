@@ -6,9 +6,18 @@ iterations per step). ``local``: the localised update's shared map trained offli
 (filtered with by ``ot_filter.local_ot(..., initial_map=...)``)."""
 
 from ot_filter.amortised.bank import ForecastBank, bank_batch, forecast_bank, split_bank
-from ot_filter.amortised.local import LocalBank, local_bank, local_bank_batch, train_local_map
+from ot_filter.amortised.local import (
+    LocalBank,
+    LocalMap,
+    LocalMapConfig,
+    amortised_local_ot,
+    local_bank,
+    local_bank_batch,
+    train_local_amortised,
+    train_local_map,
+)
 from ot_filter.amortised.selection import MapScore, score_map, select_map
-from ot_filter.amortised.storage import MapMismatchError, load_map, save_map
+from ot_filter.amortised.storage import MapMismatchError, load_local_map, load_map, save_local_map, save_map
 from ot_filter.amortised.training import (
     AmortisedMap,
     MapConfig,
@@ -26,17 +35,22 @@ __all__ = [
     "AmortisedMap",
     "ForecastBank",
     "LocalBank",
+    "LocalMap",
+    "LocalMapConfig",
     "MapConfig",
     "MapMismatchError",
     "MapScore",
     "TrainingHistory",
+    "amortised_local_ot",
     "bank_batch",
     "collect_forecasts",
     "forecast_bank",
     "local_bank",
     "local_bank_batch",
+    "load_local_map",
     "load_map",
     "map_recipe",
+    "save_local_map",
     "save_map",
     "score_map",
     "select_map",
@@ -44,6 +58,7 @@ __all__ = [
     "stack_banks",
     "train_amortised",
     "train_amortised_seeds",
+    "train_local_amortised",
     "train_local_map",
     "train_map",
     "train_maps",

@@ -8,6 +8,10 @@ training info, the versions of ot_filter / jax / flax it was written with, and t
 SHA-256). ``load_map(path, model=..., state_dim=..., observation_dim=...)`` refuses a map
 trained for another model or other dimensions, and a parameter file that does not match its
 record.
+
+A local map (``amortised.local``: the localised update's shared networks) is stored the same
+way by ``save_local_map`` (its ``LocalMapConfig`` as the config, ``"kind": "local"``) and read by
+``load_local_map``; each loader refuses the other kind.
 """
 
 from __future__ import annotations
@@ -23,11 +27,13 @@ import jax
 import jax.numpy as jnp
 from flax import serialization
 
+from ot_filter.amortised.local import LocalMap, LocalMapConfig
 from ot_filter.amortised.training import AmortisedMap, MapConfig, map_recipe
 from ot_filter.transport.context import ContextScaling
+from ot_filter.transport.saddle import SaddleParams
 from ot_filter.updates.ot import init_training
 
-__all__ = ["MapMismatchError", "load_map", "save_map"]
+__all__ = ["MapMismatchError", "load_local_map", "load_map", "save_local_map", "save_map"]
 
 PARAMS_FILE = "params.msgpack"
 RECORD_FILE = "map.json"
@@ -47,15 +53,26 @@ def _version(package: str) -> str:
 
 def save_map(path: str | os.PathLike, trained_map: AmortisedMap) -> Path:
     """Writes the map to the directory ``path`` (created; files replaced atomically)."""
+    return _write(path, _stored(trained_map), "global", trained_map.config, trained_map.info, trained_map.params,
+                  last_iterate=trained_map.last_iterate is not None)
+
+
+def save_local_map(path: str | os.PathLike, local_map: LocalMap) -> Path:
+    """Writes a local map (``amortised.local``) to the directory ``path``."""
+    return _write(path, local_map.params, "local", local_map.config, local_map.info, local_map.params)
+
+
+def _write(path, arrays, kind: str, config, info: dict, params, **extra) -> Path:
     directory = Path(path)
     directory.mkdir(parents=True, exist_ok=True)
-    payload = serialization.to_bytes(jax.device_get(_stored(trained_map)))
+    payload = serialization.to_bytes(jax.device_get(arrays))
     record = {
         "format": FORMAT,
-        "config": trained_map.config._asdict(),
-        "info": trained_map.info,
-        "dtype": str(jax.tree.leaves(trained_map.params)[0].dtype),
-        "last_iterate": trained_map.last_iterate is not None,
+        "kind": kind,
+        "config": config._asdict(),
+        "info": info,
+        "dtype": str(jax.tree.leaves(params)[0].dtype),
+        **extra,
         "sha256": hashlib.sha256(payload).hexdigest(),
         "versions": {"ot_filter": _version("ot_filter"), "jax": jax.__version__, "flax": flax.__version__},
     }
@@ -68,26 +85,8 @@ def load_map(path: str | os.PathLike, *, model: str | None = None, state_dim: in
              observation_dim: int | None = None) -> AmortisedMap:
     """Reads a map written by ``save_map``; each of ``model``, ``state_dim``, ``observation_dim``
     that is given must be what the map was trained for (else ``MapMismatchError``)."""
-    directory = Path(path)
-    try:
-        record = json.loads((directory / RECORD_FILE).read_text())
-        payload = (directory / PARAMS_FILE).read_bytes()
-    except FileNotFoundError as error:
-        raise FileNotFoundError(f"no amortised map at {directory} ({error.filename} missing)") from None
-    if record.get("format") != FORMAT:
-        raise MapMismatchError(f"{directory}: map format {record.get('format')!r}, this version reads {FORMAT}")
-    config = MapConfig(**record["config"])
-    asked = {"model": model, "state_dim": state_dim, "observation_dim": observation_dim}
-    wrong = {name: value for name, value in asked.items()
-             if value is not None and value != getattr(config, name)}
-    if wrong:
-        raise MapMismatchError(
-            f"the map at {directory} was trained for model {config.model!r} (state dimension "
-            f"{config.state_dim}, observation dimension {config.observation_dim}); asked for "
-            + ", ".join(f"{name} {value!r}" for name, value in wrong.items())
-        )
-    if hashlib.sha256(payload).hexdigest() != record["sha256"]:
-        raise MapMismatchError(f"{directory}: {PARAMS_FILE} does not match the SHA-256 in {RECORD_FILE}")
+    directory, record, payload, config = _read(path, "global", MapConfig, model=model, state_dim=state_dim,
+                                               observation_dim=observation_dim)
     settings, structure = map_recipe(config)
     dtype = jnp.dtype(record["dtype"])
     params = init_training(settings, structure, jax.random.key(0), config.state_dim, config.observation_dim,
@@ -103,6 +102,48 @@ def load_map(path: str | os.PathLike, *, model: str | None = None, state_dim: in
                             *(jnp.asarray(stored["context_scaling"][k]) for k in ("mean", "scale"))),
                         config, record["info"],
                         None if template.last_iterate is None else jax.tree.map(jnp.asarray, stored["last_iterate"]))
+
+
+def load_local_map(path: str | os.PathLike, *, model: str | None = None, state_dim: int | None = None,
+                   observation_dim: int | None = None) -> LocalMap:
+    """Reads a local map written by ``save_local_map`` (checked as ``load_map`` checks). The
+    networks' shapes are checked against the windows when the map is used
+    (``amortised_local_ot``)."""
+    _, record, payload, config = _read(path, "local", LocalMapConfig, model=model, state_dim=state_dim,
+                                       observation_dim=observation_dim)
+    stored = serialization.msgpack_restore(payload)
+    as_arrays = lambda tree: jax.tree.map(jnp.asarray, tree)  # noqa: E731
+    return LocalMap(SaddleParams(as_arrays(stored["potential"]), as_arrays(stored["transport"])), config,
+                    record["info"])
+
+
+def _read(path, kind: str, config_type, **asked):
+    """``(directory, record, payload, config)`` of a stored map of ``kind``, each ``asked``
+    value that is not None checked against its config, the payload against its SHA-256."""
+    directory = Path(path)
+    try:
+        record = json.loads((directory / RECORD_FILE).read_text())
+        payload = (directory / PARAMS_FILE).read_bytes()
+    except FileNotFoundError as error:
+        raise FileNotFoundError(f"no amortised map at {directory} ({error.filename} missing)") from None
+    if record.get("format") != FORMAT:
+        raise MapMismatchError(f"{directory}: map format {record.get('format')!r}, this version reads {FORMAT}")
+    stored_kind = record.get("kind", "global")  # maps written before local ones are global
+    if stored_kind != kind:
+        loader = "load_local_map" if stored_kind == "local" else "load_map"
+        raise MapMismatchError(f"the map at {directory} is a {stored_kind} map, not a {kind} one: read it with {loader}")
+    config = config_type(**record["config"])
+    wrong = {name: value for name, value in asked.items()
+             if value is not None and value != getattr(config, name)}
+    if wrong:
+        raise MapMismatchError(
+            f"the map at {directory} was trained for model {config.model!r} (state dimension "
+            f"{config.state_dim}, observation dimension {config.observation_dim}); asked for "
+            + ", ".join(f"{name} {value!r}" for name, value in wrong.items())
+        )
+    if hashlib.sha256(payload).hexdigest() != record["sha256"]:
+        raise MapMismatchError(f"{directory}: {PARAMS_FILE} does not match the SHA-256 in {RECORD_FILE}")
+    return directory, record, payload, config
 
 
 def _stored(trained_map: AmortisedMap) -> dict:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import time
 from functools import partial
 from typing import Callable, Sequence
@@ -95,9 +96,17 @@ def compile_and_run(function: Callable, *args, shard: bool = True) -> tuple[obje
     and every output leads with the same simulation count S that the devices do not divide, the
     arguments are padded (the last simulation repeated) to the next multiple and the outputs cut
     back to S: 5 simulations on 2 cores run as 3 + 3 instead of 5 on one.
+
+    On CPU host devices, a program whose LAPACK calls act on matrices larger than
+    ``CPU_SHARDED_LAPACK_LIMIT`` runs on one device (``_large_lapack_calls``): with jax 0.10.2 on
+    2 cores, two host devices running such calls at once deadlock (measured: batched Cholesky
+    of 64 x 64 matrices, SVD of 40 x 40, the EnKF at n = 50 with 3 simulations a device; never
+    at 32 x 32 or below).
     """
     devices = jax.devices()
     count = None
+    if shard and len(devices) > 1 and devices[0].platform == "cpu" and _large_lapack_calls(function, args):
+        shard = False
     if shard and len(devices) > 1:
         sizes = {np.shape(a)[0] if np.ndim(a) else None for a in args}
         if len(sizes) == 1 and None not in sizes and next(iter(sizes)) % len(devices):
@@ -132,6 +141,25 @@ def _devices_of(leaf) -> set:
 def _repeat_last(array, size: int):
     """``array`` with its last row repeated up to ``size`` rows (padding that is cut away)."""
     return jnp.concatenate([array, jnp.repeat(array[-1:], size - array.shape[0], axis=0)])
+
+
+# The largest matrix side a LAPACK call may have in a program sharded over CPU host devices.
+CPU_SHARDED_LAPACK_LIMIT = 32
+
+
+def _large_lapack_calls(function: Callable, args) -> bool:
+    """Whether ``function``'s program calls LAPACK on a matrix with a side above
+    ``CPU_SHARDED_LAPACK_LIMIT`` (read from its StableHLO: the operand types of the
+    ``lapack_*`` custom calls)."""
+    text = jax.jit(function).lower(*args).as_text()
+    for line in text.splitlines():
+        if "custom_call @lapack_" in line and "->" in line:
+            operands = line.rsplit(":", 1)[-1].split("->")[0]
+            for shape in re.findall(r"tensor<((?:\d+x)+)[a-z]", operands):
+                sides = [int(d) for d in shape.rstrip("x").split("x")]
+                if len(sides) >= 2 and max(sides[-2:]) > CPU_SHARDED_LAPACK_LIMIT:
+                    return True
+    return False
 
 
 def host_devices_for_cpu_cores() -> None:

@@ -352,9 +352,10 @@ def run_amortised_lorenz63(key: jax.Array, trained: AmortisedMap, observed: Sequ
                         methods=methods, observed=observed, extra_updates=amortised_updates(trained, "lorenz63"))
 
 
-def plot_validation(curves: dict, out_dir: str, name: str = "amortised_validation.png") -> str:
+def plot_validation(curves: dict, out_dir: str, name: str = "amortised_validation.png", title: str | None = None) -> str:
     """The offline training curves, one panel per map: J on held-out ensembles (and on the
-    training mini-batches) against the iterations, the rounds marked."""
+    training mini-batches) against the iterations, the rounds marked; ``title``: the figure's
+    (default: the amortised maps' rounds)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -372,7 +373,7 @@ def plot_validation(curves: dict, out_dir: str, name: str = "amortised_validatio
             ax.axvline(boundary, color="grey", lw=0.8, ls=":")
         ax.set(title=title, xlabel="outer iterations (rounds split by dotted lines)", ylabel="saddle value J")
         ax.legend(fontsize=7)
-    fig.suptitle("Offline training of the amortised OT maps: J rises as the critic f learns, then settles;\n"
+    fig.suptitle(title or "Offline training of the amortised OT maps: J rises as the critic f learns, then settles;\n"
                  "each round trains on a new bank (the amortised filter's own forecasts) and holds out part of it",
                  fontsize=9)
     return save_figure(fig, out_dir, name)

@@ -119,6 +119,7 @@ def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=Fa
 
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
           "local_ot": "OT, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
+          "local_amortised": "OT, localised, offline map (a)", "local_amortised_warm": "OT, localised, offline map (b)",
           "constant": "FPF, constant gain", "kernel": "FPF, kernel gain", "learned": "FPF, learned gain"}
 
 
@@ -182,17 +183,27 @@ DYNAMIC_KERNELS = {  # (bandwidth, standardise): the chapter's settings for each
 
 
 AMORTISED_METHODS = ("amortised", "amortised_warm")
+LOCAL_AMORTISED_METHODS = ("local_amortised", "local_amortised_warm")  # the dynamic example's
 
 
 def _amortised(options, experiment, method, num_particles, **model):
     """``(methods, extra_updates)`` for a cell of ``method``: an amortised OT filter gets the map
     stored in the run directory (trained there by the first cell that needs it, reused by later
-    cells, resumed runs and later runs into the same directory)."""
+    cells, resumed runs and later runs into the same directory); so does the localised filter
+    with an offline map (``experiments/local_amortised.py``)."""
+    maps = options["maps"] or os.path.join(options["run_dir"], "maps")
+    if method in LOCAL_AMORTISED_METHODS:
+        from ot_filter.experiments.local_amortised import local_amortised_updates, local_map_for, local_map_name
+
+        local_map, _ = local_map_for(os.path.join(maps, local_map_name(model["dim"])), cell_key(options["seed"], 999_979),
+                                     model["dim"], num_particles=num_particles, num_steps=options["steps"],
+                                     num_iterations=options["map_iterations"])
+        return (), {method: local_amortised_updates(local_map, model["dim"])[method]}
     if method not in AMORTISED_METHODS:
         return (method,), None
     from ot_filter.experiments.amortised import amortised_updates, map_for, map_name
 
-    directory = os.path.join(options["maps"] or os.path.join(options["run_dir"], "maps"), map_name(experiment, **model))
+    directory = os.path.join(maps, map_name(experiment, **model))
     # Offline trajectories as long as the run's, with its particle count.
     trained, _ = map_for(directory, cell_key(options["seed"], 999_983), experiment, num_particles=num_particles,
                          num_steps=options["steps"], num_iterations=options["map_iterations"], **model)
@@ -264,7 +275,28 @@ def _dynamic_plot(options, groups, out):
             ax.grid(alpha=0.3, which="both")
             paths.append(_save(fig, out, f"{'mmd' if metric == 'mmd_average' else 'w1'}_vs_"
                                          f"{'dimension' if axis == 'dim' else 'particles'}.png"))
+    paths.extend(_offline_curves(options, groups, out))
     return paths
+
+
+def _offline_curves(options, groups, out):
+    """The offline training curves (J on held-out ensembles) of the maps the run's amortised
+    methods used, in one figure (none when no such method ran)."""
+    from ot_filter.experiments.amortised import map_name, plot_validation
+    from ot_filter.experiments.local_amortised import local_map_name
+
+    maps = options.get("maps") or os.path.join(out, "maps")
+    curves = {}
+    for g in groups:
+        if g["method"] in AMORTISED_METHODS + LOCAL_AMORTISED_METHODS:
+            local = g["method"] in LOCAL_AMORTISED_METHODS
+            name = local_map_name(g["dim"]) if local else map_name("dynamic", dim=g["dim"])
+            history = os.path.join(maps, name, "history.npz")
+            if os.path.exists(history):
+                with np.load(history) as arrays:
+                    curves[f"{'local map' if local else 'map'}, n = {g['dim']}"] = dict(arrays)
+    title = "Offline training: J on held-out ensembles\nand on the training batches (rounds: dotted)"
+    return [plot_validation(curves, out, "offline_training.png", title)] if curves else []
 
 
 # --- Lorenz-63 (the chapter's setting) and Lorenz-96 (DAPPER's twin experiment) ---------------------
@@ -468,14 +500,16 @@ EXPERIMENTS = {
             dict(_COMMON, particles=(1000,), dim=(2,), steps=50, simulations=20,
                  methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
             dict(particles=(200,), steps=15, simulations=2, block=2, map_iterations=3000),
-            (), ("enkf", "letkf", "sir", "ot", "local_ot") + AMORTISED_METHODS, _dynamic_cell, _dynamic_plot,
+            (), ("enkf", "letkf", "sir", "ot", "local_ot") + AMORTISED_METHODS + LOCAL_AMORTISED_METHODS,
+            _dynamic_cell, _dynamic_plot,
         ),
         Experiment(
             "dynamic-dims", "the dynamic example's MMD vs state dimension (sweep)",
             dict(_COMMON, particles=(1000,), dim=(2, 4, 6, 8, 10), steps=20, simulations=20,
-                 methods=("enkf", "sir", "ot", "local_ot")),
-            dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2),
-            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot"), _dynamic_cell, _dynamic_plot,
+                 methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
+            dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2, map_iterations=3000),
+            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot") + LOCAL_AMORTISED_METHODS, _dynamic_cell,
+            _dynamic_plot,
         ),
         Experiment(
             "dynamic-particles", "the dynamic example's MMD vs particle count (sweep)",

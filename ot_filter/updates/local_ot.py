@@ -179,7 +179,8 @@ def local_ot(
         a window near 0 and one at 8 look alike once standardised, yet one observation is
         ambiguous in sign and the other sharp).
       initial_map: the shared networks' parameters trained offline (``amortised.train_local_map``,
-        built with the same sizes and windows): every training starts from them (with fresh
+        built with the same sizes and windows; ``amortised.amortised_local_ot`` builds this update
+        from a recorded ``LocalMap``): every training starts from them (with fresh
         optimiser states) instead of random ones: the first, one after a divergence, and every
         step's with ``warm_start=False``. ``num_iterations=0`` then uses the map as is (one
         forward pass a step, no training).
