@@ -209,7 +209,8 @@ def test_a_local_offline_map_is_trained_once_stored_in_the_run_and_reused_by_a_l
     from ot_filter.experiments import local_amortised
     from ot_filter.runner import run_experiment
 
-    monkeypatch.setattr(local_amortised, "MAX_SIMULATIONS", 3)  # a small bank: the test is of the plumbing
+    monkeypatch.setattr(local_amortised, "MIN_SIMULATIONS", 2)  # a small bank: the test is of the plumbing
+    monkeypatch.setattr(local_amortised, "MAX_SIMULATIONS", 3)
     small = dict(particles=(40,), steps=3, simulations=2, block=1, map_iterations=40)
     first = run_experiment("dynamic", dict(small, methods=local_amortised.METHODS), str(tmp_path / "first"),
                            progress=False, command=["test"], log=lambda line: None)

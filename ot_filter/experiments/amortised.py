@@ -366,12 +366,12 @@ def plot_validation(curves: dict, out_dir: str, name: str = "amortised_validatio
     fig, axes = plt.subplots(rows, columns, figsize=(5.5 * columns, 3.4 * rows + 0.6), squeeze=False)
     for ax in axes.flat[len(curves):]:
         ax.set_visible(False)
-    for ax, (title, arrays) in zip(axes.flat, curves.items()):
+    for ax, (panel, arrays) in zip(axes.flat, curves.items()):
         ax.plot(arrays["iterations"], arrays["validation_loss"], "o-", ms=3, label="held-out ensembles")
         ax.plot(arrays["iterations"], arrays["training_loss"], ".--", ms=3, alpha=0.7, label="training batches")
         for boundary in arrays["iterations"][np.flatnonzero(np.diff(arrays["round"])) + 1]:
             ax.axvline(boundary, color="grey", lw=0.8, ls=":")
-        ax.set(title=title, xlabel="outer iterations (rounds split by dotted lines)", ylabel="saddle value J")
+        ax.set(title=panel, xlabel="outer iterations (rounds split by dotted lines)", ylabel="saddle value J")
         ax.legend(fontsize=7)
     fig.suptitle(title or "Offline training of the amortised OT maps: J rises as the critic f learns, then settles;\n"
                  "each round trains on a new bank (the amortised filter's own forecasts) and holds out part of it",
