@@ -114,16 +114,22 @@ SIMULATIONS_CHILD = textwrap.dedent(
 )
 
 
+def _on_two_cores(child_code: str, timeout: int) -> str:
+    """Runs ``child_code`` in a CPU process that sees 2 cores and no XLA_FLAGS (where the child
+    calls ``host_devices_for_cpu_cores``, it gets 2 host devices); returns its standard output."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    code = "import os; os.cpu_count = lambda: 2\n" + child_code
+    child = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout)
+    assert child.returncode == 0, child.stderr[-3000:]
+    return child.stdout
+
+
 def test_simulations_are_padded_to_the_devices_and_cut_back():
     # 5 simulations on 2 host devices run as 3 + 3 (the last one repeated) and come back as the
     # 5 that were asked for, each equal to its own unsharded run; a function whose output does not
     # lead with the simulations (a sum over them) is not padded.
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
-    code = "import os; os.cpu_count = lambda: 2\n" + SIMULATIONS_CHILD
-    child = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
-    assert child.returncode == 0, child.stderr[-3000:]
-    out = json.loads(child.stdout.strip().splitlines()[-1])
+    out = json.loads(_on_two_cores(SIMULATIONS_CHILD, timeout=600).strip().splitlines()[-1])
     assert out["devices"] == 2 and out["shape"] == [5, 20, 3], out
     # Separate programs round differently over 20 chaotic cycles; far below the filter's error.
     assert out["diff"] < 1e-3 and out["total_diff"] < 1e-5, out
@@ -155,9 +161,4 @@ def test_large_lapack_programs_run_on_one_cpu_device():
     # Two CPU host devices running LAPACK on 64 x 64 matrices at once deadlock (jax 0.10.2, 2
     # cores), now and then: compile_and_run keeps such a program on one device. Without that
     # guard this child hung in 4 tries out of 4.
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
-    code = "import os; os.cpu_count = lambda: 2\n" + LAPACK_CHILD
-    child = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
-    assert child.returncode == 0, child.stderr[-3000:]
-    assert "finished (8, 64, 64)" in child.stdout
+    assert "finished (8, 64, 64)" in _on_two_cores(LAPACK_CHILD, timeout=300)
