@@ -191,6 +191,8 @@ def _amortised(options, experiment, method, num_particles, **model):
     stored in the run directory (trained there by the first cell that needs it, reused by later
     cells, resumed runs and later runs into the same directory); so does the localised filter
     with an offline map (``experiments/local_amortised.py``)."""
+    if method not in AMORTISED_METHODS + LOCAL_AMORTISED_METHODS:
+        return (method,), None
     maps = options["maps"] or os.path.join(options["run_dir"], "maps")
     if method in LOCAL_AMORTISED_METHODS:
         from ot_filter.experiments.local_amortised import local_amortised_updates, local_map_for, local_map_name
@@ -199,8 +201,6 @@ def _amortised(options, experiment, method, num_particles, **model):
                                      model["dim"], num_particles=num_particles, num_steps=options["steps"],
                                      num_iterations=options["map_iterations"])
         return (), {method: local_amortised_updates(local_map, model["dim"])[method]}
-    if method not in AMORTISED_METHODS:
-        return (method,), None
     from ot_filter.experiments.amortised import amortised_updates, map_for, map_name
 
     directory = os.path.join(maps, map_name(experiment, **model))
