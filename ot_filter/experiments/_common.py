@@ -104,9 +104,7 @@ def compile_and_run(function: Callable, *args, shard: bool = True) -> tuple[obje
     at 32 x 32 or below).
     """
     devices = jax.devices()
-    count = None
-    if shard and len(devices) > 1 and devices[0].platform == "cpu" and _large_lapack_calls(function, args):
-        shard = False
+    count, unsharded = None, args
     if shard and len(devices) > 1:
         sizes = {np.shape(a)[0] if np.ndim(a) else None for a in args}
         if len(sizes) == 1 and None not in sizes and next(iter(sizes)) % len(devices):
@@ -122,8 +120,12 @@ def compile_and_run(function: Callable, *args, shard: bool = True) -> tuple[obje
             sharding = NamedSharding(Mesh(np.asarray(devices), ("simulations",)), PartitionSpec("simulations"))
             args = tuple(jax.device_put(a, sharding) for a in args)
     start = time.perf_counter()
+    lowered = jax.jit(function).lower(*args)
+    if args is not unsharded and devices[0].platform == "cpu" and _large_lapack_calls(lowered.as_text()):
+        count, args = None, unsharded  # one device (docstring); lowered twice only here
+        lowered = jax.jit(function).lower(*args)
     on_cpu = {device.platform for leaf in args for device in _devices_of(leaf)} <= {"cpu"}
-    compiled = jax.jit(function).lower(*args).compile(CPU_COMPILER_OPTIONS if on_cpu else None)
+    compiled = lowered.compile(CPU_COMPILER_OPTIONS if on_cpu else None)
     compile_s = time.perf_counter() - start
     start = time.perf_counter()
     output = jax.block_until_ready(compiled(*args))
@@ -147,12 +149,10 @@ def _repeat_last(array, size: int):
 CPU_SHARDED_LAPACK_LIMIT = 32
 
 
-def _large_lapack_calls(function: Callable, args) -> bool:
-    """Whether ``function``'s program calls LAPACK on a matrix with a side above
-    ``CPU_SHARDED_LAPACK_LIMIT`` (read from its StableHLO: the operand types of the
-    ``lapack_*`` custom calls)."""
-    text = jax.jit(function).lower(*args).as_text()
-    for line in text.splitlines():
+def _large_lapack_calls(program: str) -> bool:
+    """Whether a program (its StableHLO text) calls LAPACK on a matrix with a side above
+    ``CPU_SHARDED_LAPACK_LIMIT`` (the operand types of its ``lapack_*`` custom calls)."""
+    for line in program.splitlines():
         if "custom_call @lapack_" in line and "->" in line:
             operands = line.rsplit(":", 1)[-1].split("->")[0]
             for shape in re.findall(r"tensor<((?:\d+x)+)[a-z]", operands):
