@@ -6,8 +6,10 @@ training online), against the EnKF's step on the same problem, in one run.
 The dynamic example (coordinates observed one by one, windows of radius 0), N = 1000, 5
 simulations of 20 steps vmapped, median of 5 timed runs after compilation. The map's values do
 not change its cost, so untrained maps of each width are timed (``amortised_local_ot`` of a
-``LocalMapConfig``'s initial parameters). Rows: the whole filter, and (a)'s parts: the forward
-pass of T over the N n windows alone, and (a) without the prior quantiles (``prior_context=0``).
+``LocalMapConfig``'s initial parameters). Rows: the whole filter, (a) with T tabulated at each
+of ``--knots`` knots a window (``map_knots``; 0: T at every particle), (a) without the prior
+context (``prior_context=0``, default knots), and the forward pass of T over the N n windows
+alone.
 Appends to ``--out`` (JSON).
 """
 
@@ -53,6 +55,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dims", default="10,50")
     parser.add_argument("--widths", default="64,32")
+    parser.add_argument("--knots", default="128,256,0", help="map_knots of (a) (0: T at every particle)")
     parser.add_argument("--out", default="benchmarks/results/amortised_ot/local_cost.json")
     args = parser.parse_args()
     records = []
@@ -68,7 +71,9 @@ def main():
         row = {"dim": dim, "enkf": filter_seconds(otf.enkf())}
         for width in (int(w) for w in args.widths.split(",")):
             config = local_map_config(dim)._replace(width=width)
-            row[f"a_width{width}"] = filter_seconds(amortised_local_ot(untrained(config, model), model))
+            for knots in (int(k) for k in args.knots.split(",")):
+                row[f"a_width{width}_knots{knots}"] = filter_seconds(
+                    amortised_local_ot(untrained(config, model), model, map_knots=knots))
             bare = config._replace(prior_context=0)
             row[f"a_width{width}_no_quantiles"] = filter_seconds(amortised_local_ot(untrained(bare, model), model))
             local_map = untrained(config, model)

@@ -6,6 +6,8 @@ covers the whole state against the global gain; the metrics against translations
 samples. Then accuracy against the exact posterior of the chapter's static example.
 """
 
+from statistics import NormalDist
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,6 +27,7 @@ from ot_filter.updates.local_ot import (
     _move,
     local_ot,
     local_prior_quantiles,
+    tabulated,
 )
 
 
@@ -133,8 +136,13 @@ def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain
     active = jnp.arange(num) < 50  # padding rows do not count
     levels = 4
     quantiles = np.asarray(local_prior_quantiles(xs, active, (jnp.arange(levels) + 0.5) / levels))
-    ordered = np.sort(np.asarray(xs)[:50], axis=0)
-    np.testing.assert_array_equal(quantiles, ordered[np.floor((np.arange(levels) + 0.5) / levels * 50).astype(int)].T)
+    # One Newton step from the Gaussian's quantiles p: p - (F(p) - level) / phi(p).
+    gaussian = NormalDist()
+    for k in range(levels):
+        level = (k + 0.5) / levels
+        point = gaussian.inv_cdf(level)
+        below = np.mean(np.asarray(xs)[:50] <= point, axis=0)
+        np.testing.assert_allclose(quantiles[:, k], point - (below - level) / gaussian.pdf(point), rtol=1e-10)
     data = _local_data(_numbers(windows, levels), xs, ys, y, jnp.ones(size, bool), active)
     reach, window = windows.observations.shape[1], windows.state.shape[1]
     context = np.asarray(data.y)[:, :, 2 * reach:]  # [N, n, S Q]
@@ -188,6 +196,58 @@ def test_divergence_falls_back_to_the_local_enkf():
                        scaling.standardise_y(state.simulated_observations), scaling.standardise_y(jnp.ones(3)),
                        observed, jnp.ones(200, bool))
     np.testing.assert_allclose(posterior, scaling.restore_x(_move(data, None, True)), rtol=1e-5, atol=1e-5)
+
+
+def test_a_tabulated_map_is_exact_where_linear_and_within_half_a_knot_step_at_a_kink(x64):
+    """Linear interpolation of an L-Lipschitz function errs by at most L h / 2 (h the knot step)
+    and not at all on a knot interval where it is linear: exact for a line, and for |u - c| only
+    in the interval that holds c. Inactive rows do not widen the knots' span."""
+    u = jax.random.normal(jax.random.PRNGKey(0), (500,))
+    active = jnp.arange(500) < 450
+    u = jnp.where(active, u, 1e6)  # padding far away
+    knots = 33
+    line = tabulated(lambda v: 3.0 * v - 1.0, u, active, knots)
+    np.testing.assert_allclose(line[:450], 3.0 * u[:450] - 1.0, rtol=0, atol=1e-12)
+    kink = 0.1234
+    step = float(jnp.max(u[:450]) - jnp.min(u[:450])) / (knots - 1)
+    error = np.abs(np.asarray(tabulated(lambda v: jnp.abs(v - kink), u, active, knots) - jnp.abs(u - kink)))[:450]
+    assert error.max() <= step / 2 + 1e-12
+    interval = np.floor((np.asarray(u[:450]) - float(jnp.min(u[:450]))) / step)
+    holding_kink = interval == np.floor((kink - float(jnp.min(u[:450]))) / step)
+    assert error[holding_kink].max() > 1e-3 and error[~holding_kink].max() < 1e-12
+    assert np.isfinite(np.asarray(line)).all()  # padding clamped to the last knot, not extrapolated
+
+
+def test_one_coordinate_windows_tabulate_the_map_and_wider_ones_cannot():
+    """Default ``MAP_KNOTS`` knots for windows of one state coordinate when N is larger; the
+    posterior is the map's at every particle up to the interpolation error; a wider window, or
+    one knot, is refused at build time."""
+    model, prior, _, _ = _static_problem(3, num=1000)
+    windows = local_windows(model.geometry, 0.0)
+    # A random map (T's last layer drawn, not zero) as the offline map used as is.
+    params = local_ot(windows, num_iterations=1).init(jax.random.PRNGKey(0), prior, model).training.params
+    params = params._replace(transport=jax.tree.map(
+        lambda leaf: leaf + 0.3 * jax.random.normal(jax.random.PRNGKey(1), leaf.shape), params.transport))
+    posteriors = []
+    for knots in (None, 0):
+        update = local_ot(windows, num_iterations=0, initial_map=params, map_knots=knots)
+        assert update.apply.func.keywords["structure"].map_knots == (128 if knots is None else 0)
+        state = update.init(jax.random.PRNGKey(2), prior, model)
+        _, state, _ = update.apply(jax.random.PRNGKey(3), state, prior, jnp.ones(3), model)
+        # The map itself (apply may fall back: a random map throws particles far).
+        posteriors.append(np.asarray(update.transport(state, prior, jnp.ones(3), model)))
+    difference = np.abs(posteriors[0] - posteriors[1]) / np.std(posteriors[1], axis=0)
+    # At most L h / 2: knot step h = (about 6 prior stds) / 127, T's slope L about the ratio of
+    # the spreads, 2.3: 0.05 / 2 of the map's spread. Most particles sit between kinks: exact.
+    # (16 knots: median 0.007, max 0.05.)
+    assert np.median(difference) < 1e-3
+    assert difference.max() < 0.03
+    wide = local_windows(otf.models.lorenz96(dim=8).geometry, 2.0, 1.0)
+    assert local_ot(wide).apply.func.keywords["structure"].map_knots == 0
+    with pytest.raises(ValueError, match="map_knots tabulates a map of one state coordinate"):
+        local_ot(wide, map_knots=64)
+    with pytest.raises(ValueError, match="map_knots must be 0"):
+        local_ot(windows, map_knots=1)
 
 
 def test_local_ot_runs_in_a_filter_with_missing_observations_without_retracing():

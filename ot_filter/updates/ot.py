@@ -154,6 +154,7 @@ class OTStructure(NamedTuple):
     contextual: bool = False  # the networks also read the prior's context (``transport/context.py``)
     deterministic_layer: bool = False  # the EnKF layer is ``saddle.DeterministicLayer`` (local_ot)
     location_context: bool = False  # (local_ot) the networks read each window's location and spread
+    map_knots: int = 0  # (local_ot) T tabulated at this many points per window (0: at every particle)
 
 
 class OTState(NamedTuple):
