@@ -6,8 +6,6 @@ covers the whole state against the global gain; the metrics against translations
 samples. Then accuracy against the exact posterior of the chapter's static example.
 """
 
-from statistics import NormalDist
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -27,6 +25,7 @@ from ot_filter.updates.local_ot import (
     _move,
     local_ot,
     local_prior_quantiles,
+    sort_columns,
     tabulated,
 )
 
@@ -130,19 +129,24 @@ def _static_problem(dim, num=1000, seed=0):
     return model, prior, exact.grid, masses
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_columns_sorted_as_integers_are_sorted_as_floats(x64, dtype):
+    values = jnp.array([[3.5, -0.0], [-1e-30, 0.0], [-2.0, jnp.inf], [1e30, -jnp.inf], [-7.25, 1.0], [0.0, -1.0]],
+                       dtype)
+    values = jnp.concatenate([values, jax.random.normal(jax.random.PRNGKey(0), (200, 2), dtype) * 10.0])
+    ordered = sort_columns(values)
+    assert ordered.dtype == dtype
+    np.testing.assert_array_equal(ordered, np.sort(np.asarray(values), axis=0))
+
+
 def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain(x64):
     num, size, observed = 60, 8, np.arange(8)
     windows, xs, ys, y = _ring_data(jax.random.PRNGKey(4), num, size, observed, 1.0, 1.0)
     active = jnp.arange(num) < 50  # padding rows do not count
     levels = 4
     quantiles = np.asarray(local_prior_quantiles(xs, active, (jnp.arange(levels) + 0.5) / levels))
-    # One Newton step from the Gaussian's quantiles p: p - (F(p) - level) / phi(p).
-    gaussian = NormalDist()
-    for k in range(levels):
-        level = (k + 0.5) / levels
-        point = gaussian.inv_cdf(level)
-        below = np.mean(np.asarray(xs)[:50] <= point, axis=0)
-        np.testing.assert_allclose(quantiles[:, k], point - (below - level) / gaussian.pdf(point), rtol=1e-10)
+    ordered = np.sort(np.asarray(xs)[:50], axis=0)
+    np.testing.assert_array_equal(quantiles, ordered[np.floor((np.arange(levels) + 0.5) / levels * 50).astype(int)].T)
     data = _local_data(_numbers(windows, levels), xs, ys, y, jnp.ones(size, bool), active)
     reach, window = windows.observations.shape[1], windows.state.shape[1]
     context = np.asarray(data.y)[:, :, 2 * reach:]  # [N, n, S Q]
@@ -219,7 +223,7 @@ def test_a_tabulated_map_is_exact_where_linear_and_within_half_a_knot_step_at_a_
 
 
 def test_one_coordinate_windows_tabulate_the_map_and_wider_ones_cannot():
-    """Default ``MAP_KNOTS`` knots for windows of one state coordinate when N is larger; the
+    """Default ``MAP_KNOTS`` knots for windows of one state coordinate and a map used as is; the
     posterior is the map's at every particle up to the interpolation error; a wider window, or
     one knot, is refused at build time."""
     model, prior, _, _ = _static_problem(3, num=1000)
@@ -242,6 +246,9 @@ def test_one_coordinate_windows_tabulate_the_map_and_wider_ones_cannot():
     # (16 knots: median 0.007, max 0.05.)
     assert np.median(difference) < 1e-3
     assert difference.max() < 0.03
+    trained = local_ot(windows, num_iterations=(64, 16), initial_map=params)  # a map that changes: not by default
+    assert trained.apply.func.keywords["structure"].map_knots == 0
+    assert local_ot(windows, num_iterations=(64, 16), map_knots=32).apply.func.keywords["structure"].map_knots == 32
     wide = local_windows(otf.models.lorenz96(dim=8).geometry, 2.0, 1.0)
     assert local_ot(wide).apply.func.keywords["structure"].map_knots == 0
     with pytest.raises(ValueError, match="map_knots tabulates a map of one state coordinate"):

@@ -38,9 +38,6 @@ __all__ = ["MapMismatchError", "load_local_map", "load_map", "save_local_map", "
 PARAMS_FILE = "params.msgpack"
 RECORD_FILE = "map.json"
 FORMAT = 1
-# How a local map's prior quantiles are computed (``local_ot.local_prior_quantiles``): maps of
-# 0.2.7 and before were trained on sorted quantiles, and their record has no such entry.
-PRIOR_QUANTILES = "newton"
 
 
 class MapMismatchError(ValueError):
@@ -62,8 +59,7 @@ def save_map(path: str | os.PathLike, trained_map: AmortisedMap) -> Path:
 
 def save_local_map(path: str | os.PathLike, local_map: LocalMap) -> Path:
     """Writes a local map (``amortised.local``) to the directory ``path``."""
-    return _write(path, local_map.params, "local", local_map.config, local_map.info, local_map.params,
-                  prior_quantiles=PRIOR_QUANTILES)
+    return _write(path, local_map.params, "local", local_map.config, local_map.info, local_map.params)
 
 
 def _write(path, arrays, kind: str, config, info: dict, params, **extra) -> Path:
@@ -115,9 +111,6 @@ def load_local_map(path: str | os.PathLike, *, model: str | None = None, state_d
     (``amortised_local_ot``)."""
     _, record, payload, config = _read(path, "local", LocalMapConfig, model=model, state_dim=state_dim,
                                        observation_dim=observation_dim)
-    if config.prior_context and record.get("prior_quantiles", "sorted") != PRIOR_QUANTILES:
-        raise MapMismatchError(f"the map at {path} was trained on the prior's sorted quantiles, which this version "
-                               "no longer computes (local_prior_quantiles): train it again")
     stored = serialization.msgpack_restore(payload)
     as_arrays = lambda tree: jax.tree.map(jnp.asarray, tree)  # noqa: E731
     return LocalMap(SaddleParams(as_arrays(stored["potential"]), as_arrays(stored["transport"])), config,
