@@ -35,7 +35,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.7"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.8"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -46,6 +46,8 @@ __version__ = "0.2.7"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run d
 #                       0.2.5: the dynamic example's amortised maps above n = 4 average each round's iterates
 #                       0.2.6: ot()'s default width grows with n above n = 18 (128, then 256 from n = 37)
 #                       0.2.7: ot()'s default prior_smoothing is 1.5 (was 1)
+#                       0.2.8: local_ot's layer gain has the ridge of its observation slots alone; a local
+#                       map used as is is tabulated at 128 knots (map_knots); its checks read CHECK_ROWS particles
 
 __all__ = [
     "BayesUpdate",

@@ -78,6 +78,14 @@ def test_log_weight_normalisation_and_ess():
     assert np.all(np.isneginf(padded[3:])) and int(weights.count_active(padded)) == 3
 
 
+def test_active_first_is_the_stable_argsort_of_the_padding_flags():
+    rng = np.random.default_rng(0)
+    masks = [rng.random(50) < p for p in (0.0, 0.3, 0.8, 1.0)]
+    for mask in masks:
+        order = jax.jit(weights.active_first)(jnp.asarray(mask))
+        np.testing.assert_array_equal(order, np.argsort(~mask, kind="stable"))
+
+
 def test_use_where_picks_leaf_by_leaf():
     value = {"a": jnp.ones(3), "b": (jnp.full(2, 2.0),)}
     backup = {"a": jnp.zeros(3), "b": (jnp.full(2, -1.0),)}

@@ -101,7 +101,7 @@ def test_local_enkf_layer_is_the_per_coordinate_perturbed_enkf(x64):
         near = np.asarray(windows.observations[i])[np.asarray(windows.observations_valid[i])]
         xa, ya = X[:, state] - X[:, state].mean(0), Y[:, near] - Y[:, near].mean(0)
         cov_y = ya.T @ ya / (num - 1)
-        ridge = 1e-4 * (1 + np.trace(cov_y) / (2 * windows.observations.shape[1]))
+        ridge = 1e-4 * (1 + np.trace(cov_y) / windows.observations.shape[1])  # over the K slots
         gain = (xa.T @ ya / (num - 1)) @ np.linalg.inv(cov_y + ridge * np.eye(len(near)))
         expected = X[:, i] + (np.asarray(y)[near] - Y[:, near]) @ gain[0]
         np.testing.assert_allclose(moved[:, i], expected, rtol=1e-6, atol=1e-6)
@@ -115,9 +115,9 @@ def test_a_window_over_everything_has_the_global_gain(x64):
     for i in range(size):
         state, near = np.asarray(windows.state[i]), np.asarray(windows.observations[i])
         reach = near.size
-        # Up to the ridge's size (it depends on the mask columns' count): 1e-4 relative.
+        # The same ridge (relative to the m slots' mean variance): the same gain.
         np.testing.assert_allclose(data.gain[i][:, :reach], np.asarray(global_gain)[np.ix_(state, near)],
-                                   rtol=2e-3, atol=2e-4)
+                                   rtol=1e-8, atol=1e-10)
         np.testing.assert_allclose(data.gain[i][:, reach:], 0.0, atol=1e-12)
 
 

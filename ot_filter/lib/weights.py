@@ -15,6 +15,7 @@ import jax.numpy as jnp
 Array = jax.Array
 
 __all__ = [
+    "active_first",
     "active_mask",
     "count_active",
     "count_dependent",
@@ -22,6 +23,17 @@ __all__ = [
     "normalise_log_weights",
     "uniform_log_weights",
 ]
+
+
+def active_first(active: Array) -> Array:
+    """``[N]``: the permutation putting the active rows first, each group in its own order (the
+    stable argsort of ``~active``), by counting: XLA's CPU sort of N = 1000 flags cost a fifth of
+    an EnKF step at n = 10."""
+    active = jnp.asarray(active, bool)
+    count = jnp.sum(active, dtype=jnp.int32)
+    destination = jnp.where(active, jnp.cumsum(active, dtype=jnp.int32) - 1,
+                            count + jnp.cumsum(~active, dtype=jnp.int32) - 1)
+    return jnp.zeros_like(destination).at[destination].set(jnp.arange(active.shape[0], dtype=jnp.int32))
 
 
 def active_mask(log_weights: Array) -> Array:

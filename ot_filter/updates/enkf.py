@@ -58,7 +58,7 @@ from ot_filter.lib.linalg import truncated_pinv_solve
 from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_number
-from ot_filter.lib.weights import active_mask, count_active, count_dependent
+from ot_filter.lib.weights import active_first, active_mask, count_active, count_dependent
 from ot_filter.lib.validation import is_traced
 from ot_filter.localisation import (
     GASPARI_COHN_HALF_WIDTH,
@@ -369,14 +369,9 @@ def _rotated_square_root_update(key, mean, anomalies, observation, model, active
     posterior_mean = mean + over_scale(weights @ transformed)
     rotated = _haar_rotate(key, transformed, num_active - 1)
     full = reflect(jnp.concatenate([jnp.zeros_like(anomalies[:1]), rotated]))
-    posterior_anomalies = full[jnp.argsort(order)]  # back to the original row order
+    posterior_anomalies = jnp.zeros_like(full).at[order].set(full)  # back to the original row order
     diagonal = jnp.diag(chol)
     return posterior_mean, posterior_anomalies, (jnp.max(diagonal) / jnp.min(diagonal)) ** 2
-
-
-def active_first(active):
-    """The permutation putting the active rows first (stable: the unpadded order is kept)."""
-    return jnp.argsort((~active).astype(jnp.int32), stable=True)
 
 
 def _ones_reflection(num, count, dtype):

@@ -35,7 +35,7 @@ from ot_filter.lib.ensemble import masked_mean_and_anomalies
 from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_int, check_number
-from ot_filter.lib.weights import active_mask, count_active
+from ot_filter.lib.weights import active_first, active_mask, count_active
 from ot_filter.localisation import Localisation
 from ot_filter.model import StateSpaceModel
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
@@ -126,7 +126,7 @@ def letkf_apply(settings: LETKFSettings, key: Array, state: UniformWeightsState,
     posterior_anomalies = posterior_anomalies.T  # [N, n]
     posterior_mean = mean + increments
     if rotate:
-        order = jnp.argsort((~active).astype(jnp.int32), stable=True)
+        order = active_first(active)
         rotated = random_rotation(key, posterior_anomalies[order], num_active)
         posterior_anomalies = jnp.zeros_like(rotated).at[order].set(rotated)
     particles = posterior_mean + posterior_anomalies

@@ -76,7 +76,7 @@ from ot_filter.lib.fallback import use_where
 from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_int, is_traced
-from ot_filter.lib.weights import active_mask, uniform_log_weights
+from ot_filter.lib.weights import active_first, active_mask, uniform_log_weights
 from ot_filter.localisation import TAPERS, LocalWindows, taper_support, taper_weights
 from ot_filter.model import StateSpaceModel
 from ot_filter.transport.divergence import CHECK_ROWS
@@ -390,7 +390,11 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     x = xs[:, windows.state] * windows.state_valid.astype(xs.dtype)
     y = jax.vmap(local_y)(ys)
     if layer is None:
-        gain = jax.vmap(lambda xi, yi: enkf_gain(xi, yi, active), in_axes=(1, 1))(x, y)
+        # The gain of the observation slots; the mask and context columns are constant for a
+        # coordinate (no covariance, no gain) and would only grow the matrix to factorise.
+        reach = mask.shape[1]
+        gain = jax.vmap(lambda xi, yi: enkf_gain(xi, yi[:, :reach], active), in_axes=(1, 1))(x, y)
+        gain = jnp.pad(gain, ((0, 0), (0, 0), (0, y.shape[-1] - reach)))
         return _LocalData(x, y, local_y(y_standard), gain, x, y)
     layer_x, layer_y, gain = _local_transforms(x, *layer, mask * numbers.layer_weights, windows.observations,
                                                active, y.shape[-1])
@@ -514,7 +518,7 @@ def _apply(numbers, key, state, particles, observation, model, structure):
 
     prior, data = local_pairs(numbers, structure, simulate_key, state.log_weights, particles, observation, model)
     particles, simulated, active, num_active, scaling, observed, xs, ys = prior
-    active_index = jnp.argsort(~active, stable=True)
+    active_index = active_first(active)
 
     def sample_batch(batch_key):
         pair_key, copy_key, coordinate_key = jax.random.split(batch_key, 3)
@@ -532,7 +536,9 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     moved = _move(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer,
                   _knots(structure, num), active)
 
-    z = predictive_check(check_key, model.sample_observation, scaling.restore_x(moved), observation, active)
+    checked = active_index[:min(CHECK_ROWS, num)]  # as ot()'s: the first CHECK_ROWS active particles
+    z = predictive_check(check_key, model.sample_observation, scaling.restore_x(moved[checked]), observation,
+                         active[checked])
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold,
                                       window, moved, active, z, xs)
     fallback = scaling.restore_x(_move(data, None, True))
@@ -542,11 +548,9 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         fresh = _starting_training(numbers, structure, reset_key, window, particles.dtype)
         training = use_where(diverged, fresh, training)
 
-    # f's spread over the first CHECK_ROWS active particles (as ot()'s), each at a random coordinate.
-    rows = active_index[:min(CHECK_ROWS, num)]
-    sample = jax.random.randint(jax.random.fold_in(check_key, 1), rows.shape, 0, n)
-    potential_values = potential_net.apply(params.potential, data.x[rows, sample], data.y[rows, sample])
-    counted = jnp.arange(rows.shape[0]) < num_active
+    # f's spread over the same particles, each at a random coordinate.
+    sample = jax.random.randint(jax.random.fold_in(check_key, 1), checked.shape, 0, n)
+    potential_values = potential_net.apply(params.potential, data.x[checked, sample], data.y[checked, sample])
     state = LocalOTState(
         log_weights=state.log_weights,
         training=training,
@@ -563,7 +567,7 @@ def _apply(numbers, key, state, particles, observation, model, structure):
         diverged=diverged,
         min_hessian_eigenvalue=jnp.array(jnp.inf, particles.dtype),
         concavity_violation=jnp.zeros((), particles.dtype),
-        potential_spread=finite_or_inf(jnp.std(potential_values, where=counted)),
+        potential_spread=finite_or_inf(jnp.std(potential_values, where=active[checked])),
         predictive_z=finite_or_inf(z),
         innovation_trend=trend,
     )

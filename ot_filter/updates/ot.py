@@ -68,7 +68,7 @@ from ot_filter.lib.fallback import use_where
 from ot_filter.lib.ensemble import inflate, masked_mean_and_anomalies
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number, is_traced
-from ot_filter.lib.weights import active_mask, uniform_log_weights
+from ot_filter.lib.weights import active_first, active_mask, uniform_log_weights
 from ot_filter.model import StateSpaceModel, dense_noise_cov
 from ot_filter.transport.batches import TrainingData, own_pairs, sample_batch
 from ot_filter.transport.context import ContextScaling, conditioning, context_features, context_size
@@ -583,7 +583,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
 
     data = TrainingData(
         xs, ys,
-        active_index=jnp.argsort(~active, stable=True),  # mini-batches draw indices below num_active
+        active_index=active_first(active),  # mini-batches draw indices below num_active
         num_active=num_active,
         bandwidth=smoothing_bandwidth(settings.prior_smoothing, num_active, n, xs.dtype),
         correlation_factor=correlation_cholesky(xs, active) if structure.smoothing else None,
