@@ -14,7 +14,7 @@ from ot_filter.localisation import Geometry, LocalWindows, Localisation, local_w
 from ot_filter.continuous import SDEModel
 from ot_filter.filtering import FilterResult, run_filter
 from ot_filter.kalman import KalmanResult, kalman_filter
-from ot_filter.model import StateSpaceModel, simulate
+from ot_filter.model import StateSpaceModel, simulate, simulate_observations
 from ot_filter.sharding import particle_sharding
 from ot_filter.updates import (
     BayesUpdate,
@@ -35,7 +35,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.8"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.9"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -48,6 +48,8 @@ __version__ = "0.2.8"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run d
 #                       0.2.7: ot()'s default prior_smoothing is 1.5 (was 1)
 #                       0.2.8: local_ot's layer gain has the ridge of its observation slots alone; a local
 #                       map used as is is tabulated at 128 knots (map_knots); its checks read CHECK_ROWS particles
+#                       0.2.9: the OT updates and the offline bank simulate observations with additive Gaussian
+#                       noise as h(X) + noise drawn a component at a time (simulate_observations): other draws
 
 __all__ = [
     "BayesUpdate",
@@ -84,5 +86,6 @@ __all__ = [
     "ring",
     "run_filter",
     "simulate",
+    "simulate_observations",
     "sir",
 ]

@@ -94,7 +94,7 @@ def test_local_enkf_layer_is_the_per_coordinate_perturbed_enkf(x64):
     windows, xs, ys, y = _ring_data(jax.random.PRNGKey(2), num, size, observed, 2.0, 1.0)
     active = jnp.ones(num, bool)
     data = _local_data(_numbers(windows), xs, ys, y, jnp.ones(len(observed), bool), active)
-    moved = np.asarray(_move(data, None, True))
+    moved = np.asarray(_move(data, None, True, windows.observations.shape[1]))
     X, Y = np.asarray(xs), np.asarray(ys)
     for i in range(size):
         state = np.asarray(windows.state[i])
@@ -199,7 +199,7 @@ def test_divergence_falls_back_to_the_local_enkf():
     data = _local_data(_numbers(local_windows(model.geometry, 0.0), 8), scaling.standardise_x(prior),
                        scaling.standardise_y(state.simulated_observations), scaling.standardise_y(jnp.ones(3)),
                        observed, jnp.ones(200, bool))
-    np.testing.assert_allclose(posterior, scaling.restore_x(_move(data, None, True)), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(posterior, scaling.restore_x(_move(data, None, True, 1)), rtol=1e-5, atol=1e-5)
 
 
 def test_a_tabulated_map_is_exact_where_linear_and_within_half_a_knot_step_at_a_kink(x64):

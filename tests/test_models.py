@@ -93,3 +93,26 @@ def test_lorenz96_vector_field_matches_its_definition():
     expected = np.array([[(x[b, (i + 1) % n] - x[b, i - 2]) * x[b, i - 1] - x[b, i] + 8.0
                           for i in range(n)] for b in range(3)])
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-5)
+
+
+def test_simulate_observations_draws_h_plus_the_noise_of_r():
+    """Additive Gaussian noise: h(X^i) + N(0, R) (a full R: mean and covariance within 5
+    Monte-Carlo standard deviations), prefix-consistent in N; without R the model's sampler
+    with a key per particle, exactly."""
+    R = np.array([[1.0, 0.6, 0.0], [0.6, 2.0, -0.5], [0.0, -0.5, 0.5]])
+    H = np.array([[1.0, 0.0], [0.0, 2.0], [1.0, -1.0]])
+    model = models.linear_gaussian(np.eye(2), np.eye(2), H, R, np.zeros(2), np.eye(2))
+    num = 20_000
+    x = jnp.broadcast_to(jnp.array([0.5, -1.0]), (num, 2))
+    y = otf.simulate_observations(jax.random.key(0), model, x)
+    noise = np.asarray(y) - np.asarray(x[0]) @ H.T
+    mean_sd = np.sqrt(np.diag(R) / num)
+    np.testing.assert_array_less(np.abs(noise.mean(0)), 5 * mean_sd)
+    cov_sd = np.sqrt((np.outer(np.diag(R), np.diag(R)) + R**2) / num)
+    np.testing.assert_array_less(np.abs(np.cov(noise.T) - R), 5 * cov_sd)
+    np.testing.assert_array_equal(otf.simulate_observations(jax.random.key(0), model, x[:100]), y[:100])
+    sampler_only = model._replace(observation_function=None, observation_noise_cov=None)
+    x = jax.random.normal(jax.random.key(1), (7, 2))
+    np.testing.assert_array_equal(
+        otf.simulate_observations(jax.random.key(2), sampler_only, x),
+        jax.vmap(model.sample_observation)(jax.random.split(jax.random.key(2), 7), x))

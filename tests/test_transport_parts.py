@@ -8,6 +8,7 @@ import numpy as np
 from ot_filter.lib.ensemble import masked_mean_and_std
 
 from ot_filter.lib.weights import active_mask, uniform_log_weights
+from ot_filter.model import StateSpaceModel
 from ot_filter.transport import batches, divergence, standardisation
 from ot_filter.updates.ot import iteration_budget
 
@@ -78,7 +79,8 @@ def test_predictive_z_and_each_divergence_condition():
     x = jnp.asarray(_ensemble(num=50))
     active = jnp.ones(50, bool)
     y = jnp.asarray([1.0, 0.0])
-    z = divergence.predictive_z(jax.random.key(0), lambda key, x: x, x, y, active)
+    observe_state = StateSpaceModel(lambda key: jnp.zeros(2), lambda key, x: x, lambda key, x: x)
+    z = divergence.predictive_z(jax.random.key(0), observe_state, x, y, active)
     expected = np.max(np.abs(np.asarray(y) - np.asarray(x).mean(0)) / np.asarray(x).std(0))
     np.testing.assert_allclose(z, expected, rtol=1e-5)
     moved = (x - x.mean(0)) / x.std(0) * 0.5

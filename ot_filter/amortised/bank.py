@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from ot_filter.lib.ensemble import inflate
-from ot_filter.model import StateSpaceModel
+from ot_filter.model import StateSpaceModel, simulate_observations
 from ot_filter.transport.batches import simulate_standardised
 from ot_filter.transport.context import ContextScaling, context_features
 from ot_filter.transport.saddle import Batch, enkf_gain
@@ -55,7 +55,7 @@ def forecast_bank(key: Array, model: StateSpaceModel, analyses: Array, inflation
         forecast = jax.vmap(model.sample_transition)(jax.random.split(propagate_key, num), ensemble)
         active = jnp.ones(num, bool)
         forecast = inflate(forecast, active, inflation)
-        simulated = jax.vmap(model.sample_observation)(jax.random.split(observe_key, num), forecast)
+        simulated = simulate_observations(observe_key, model, forecast)
         scaling = standardisation(forecast, simulated, active)
         xs = scaling.standardise_x(forecast)
         gain = enkf_gain(xs, scaling.standardise_y(simulated))

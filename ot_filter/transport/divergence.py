@@ -51,12 +51,11 @@ its prior predictive.
 
 from __future__ import annotations
 
-from typing import Callable
-
 import jax
 import jax.numpy as jnp
 
 from ot_filter.lib.ensemble import masked_mean_and_std
+from ot_filter.model import StateSpaceModel, simulate_observations
 
 Array = jax.Array
 
@@ -107,13 +106,13 @@ MIN_INNOVATION_TREND = 0.5
 LOW_TREND_SIGMAS = 4.0
 
 
-def predictive_z(key: Array, sample_observation: Callable, particles: Array, observation: Array,
+def predictive_z(key: Array, model: StateSpaceModel, particles: Array, observation: Array,
                  active: Array) -> Array:
     """max over coordinates of |y - mean Y'| / std Y', with Y' simulated at ``particles[N, n]``
-    (non-finite particles replaced by 0 for the simulation; the active rows only; over the
-    observed coordinates, NaN ones being missing)."""
+    (``model.simulate_observations``; non-finite particles replaced by 0 for the simulation; the
+    active rows only; over the observed coordinates, NaN ones being missing)."""
     safe = jnp.where(jnp.isfinite(particles), particles, 0.0)
-    predicted = jax.vmap(sample_observation)(jax.random.split(key, particles.shape[0]), safe)
+    predicted = simulate_observations(key, model, safe)
     mean, std = masked_mean_and_std(predicted, active)
     z = jnp.abs(observation - mean) / (std + 1e-12)
     return jnp.max(jnp.where(jnp.isfinite(observation), z, 0.0))

@@ -69,9 +69,8 @@ from ot_filter.localisation import (
 )
 from ot_filter.model import (
     StateSpaceModel,
-    colour_noise,
     dense_noise_cov,
-    observation_noise_factors,
+    observation_noise,
     observed_noise_factors,
     whiten,
 )
@@ -210,15 +209,9 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         # Exact R: Cov(h) + R is positive definite, so Cholesky suffices (cheaper than eigh).
         predicted = jax.vmap(model.observation_function)(particles)
         noise_cov = dense_noise_cov(model.observation_noise_cov).astype(particles.dtype)
-        factors = observation_noise_factors(model, particles.dtype)
-        # Draws of N(0, R); on the observed components, draws of N(0, R_oo) (a marginal).
-        # Component k's N draws come from its own key (fold_in k): they do not depend on m, so
-        # deleting trailing components leaves the others' draws (and L's leading block is the
-        # Cholesky factor of R's leading block: tests/test_partial_observations.py), and each
-        # stream is prefix-consistent in N (a padded particle axis, updates.base).
-        standard = jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(key, k), (num_particles,),
-                                                        particles.dtype))(jnp.arange(predicted.shape[1])).T
-        noise = colour_noise(factors, standard)
+        # Draws of N(0, R); on the observed components, draws of N(0, R_oo) (a marginal; that
+        # deleting components keeps the others' draws: tests/test_partial_observations.py).
+        noise = observation_noise(key, model, num_particles, predicted.shape[1], particles.dtype)
         # Centred perturbations (no sampling bias), over the active particles.
         _, noise = masked_mean_and_anomalies(noise, active, num_active)
         _, predicted_anomalies = masked_mean_and_anomalies(predicted, active, num_active)

@@ -438,16 +438,18 @@ def _local_transforms(x: Array, predicted: Array, noise_variance: Array, weights
     return layer_x, jnp.broadcast_to(start, (x.shape[0],) + start.shape), gain
 
 
-def _move(data: _LocalData, transport: Callable | None, use_gain: bool, knots: int = 0,
+def _move(data: _LocalData, transport: Callable | None, use_gain: bool, slots: int, knots: int = 0,
           active: Array | None = None) -> Array:
     """``[N, n]``: each coordinate's own component of the local map applied to every particle's
     window (``transport`` None: the layer alone, the local perturbed or deterministic EnKF).
+    ``slots``: the windows' observation slots K, the gain's only non-zero columns (the layer
+    reads those alone: over all C columns it was a quarter of the EnKF's step at n = 50).
     ``knots`` > 0 (windows of one state coordinate): T evaluated at that many points spanning
     the ``active`` particles' inputs and interpolated (``tabulated``)."""
 
     def one_coordinate(x, y_start, y, gain):
         rows = jnp.broadcast_to(y, y_start.shape)
-        inputs = transport_input(x, rows, y_start, gain if use_gain else None)
+        inputs = transport_input(x, rows[:, :slots], y_start[:, :slots], gain[:, :slots] if use_gain else None)
         if transport is None:
             return inputs[:, 0]
         if knots:
@@ -533,15 +535,15 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     training, trace, trend, lost = train(settings, structure, train_key, reset_key, state, prior, observation,
                                          sample_batch, (window, conditioning), cost_from_layer=True)
     params = training.params
-    moved = _move(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer,
+    slots = numbers.windows.observations.shape[1]
+    moved = _move(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer, slots,
                   _knots(structure, num), active)
 
     checked = active_index[:min(CHECK_ROWS, num)]  # as ot()'s: the first CHECK_ROWS active particles
-    z = predictive_check(check_key, model.sample_observation, scaling.restore_x(moved[checked]), observation,
-                         active[checked])
+    z = predictive_check(check_key, model, scaling.restore_x(moved[checked]), observation, active[checked])
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold,
                                       window, moved, active, z, xs)
-    fallback = scaling.restore_x(_move(data, None, True))
+    fallback = scaling.restore_x(_move(data, None, True, slots))
     posterior = use_where(~diverged, scaling.restore_x(moved), fallback)
     posterior = jnp.where(jnp.any(observed), posterior, particles)
     if structure.first_iterations:  # a map used as is has nothing to restart
@@ -601,4 +603,5 @@ def _transport(numbers, state, particles, observation, model, structure):
                        scaling if structure.location_context else None)
     params = state.training.params.transport
     return scaling.restore_x(_move(data, lambda x, y: transport_net.apply(params, x, y), structure.enkf_layer,
-                                   _knots(structure, particles.shape[0]), active))
+                                   numbers.windows.observations.shape[1], _knots(structure, particles.shape[0]),
+                                   active))

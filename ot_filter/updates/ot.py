@@ -69,7 +69,7 @@ from ot_filter.lib.ensemble import inflate, masked_mean_and_anomalies
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number, is_traced
 from ot_filter.lib.weights import active_first, active_mask, uniform_log_weights
-from ot_filter.model import StateSpaceModel, dense_noise_cov
+from ot_filter.model import StateSpaceModel, dense_noise_cov, simulate_observations
 from ot_filter.transport.batches import TrainingData, own_pairs, sample_batch
 from ot_filter.transport.context import ContextScaling, conditioning, context_features, context_size
 from ot_filter.transport.diagnostics import c_concavity_min_eigenvalue
@@ -509,7 +509,7 @@ def prior_data(settings: OTSettings, key: Array, log_weights: Array, particles: 
     T(x, y_observed)."""
     active = active_mask(log_weights)
     particles = inflate(particles, active, settings.inflation)
-    simulated = jax.vmap(model.sample_observation)(jax.random.split(key, particles.shape[0]), particles)
+    simulated = simulate_observations(key, model, particles)
     scaling = standardisation(particles, simulated, active)
     observed = jnp.isfinite(observation)
     return PriorData(particles, simulated, active, jnp.sum(active), scaling, observed,
@@ -629,8 +629,8 @@ def _apply(settings, key, state, particles, observation, model, structure):
 
     # 4. Checks: divergence (loss, spread, posterior predictive) and c-concavity.
     checked = data.active_index[:CHECK_ROWS]
-    z = predictive_check(jax.random.fold_in(key, 4), model.sample_observation,
-                         scaling.restore_x(moved[checked]), observation, active[checked])
+    z = predictive_check(jax.random.fold_in(key, 4), model, scaling.restore_x(moved[checked]), observation,
+                         active[checked])
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold, n,
                                       moved, active, z, xs)
     min_eigenvalue, violation = _concavity_check(settings, structure, params.potential, xs, ys, data, context)
