@@ -109,7 +109,7 @@ LOW_TREND_SIGMAS = 4.0
 def predictive_z(key: Array, model: StateSpaceModel, particles: Array, observation: Array,
                  active: Array) -> Array:
     """max over coordinates of |y - mean Y'| / std Y', with Y' simulated at ``particles[N, n]``
-    (``model.simulate_observations``; non-finite particles replaced by 0 for the simulation; the
+    by ``simulate_observations`` (non-finite particles replaced by 0 for the simulation; the
     active rows only; over the observed coordinates, NaN ones being missing)."""
     safe = jnp.where(jnp.isfinite(particles), particles, 0.0)
     predicted = simulate_observations(key, model, safe)
