@@ -72,6 +72,7 @@ from ot_filter.model import (
     dense_noise_cov,
     observation_noise,
     observed_noise_factors,
+    simulate_observations,
     whiten,
 )
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
@@ -229,8 +230,7 @@ def _perturbed_update(key, particles, anomalies, observation, model, active, num
         condition = (jnp.max(diagonal) / jnp.min(diagonal)) ** 2  # cheap lower bound
         return particles + innovations @ gain.T, condition
     # Simulation-based: Cov(Y) is estimated and may be singular (e.g. N <= m): eigh.
-    keys = jax.random.split(key, num_particles)
-    simulated = jax.vmap(model.sample_observation)(keys, particles)
+    simulated = simulate_observations(key, model, particles)  # a key per particle: no h and R here
     _, simulated_anomalies = masked_mean_and_anomalies(simulated, active, num_active)
     simulated_anomalies = jnp.where(observed, simulated_anomalies, 0.0)
     innovation_cov = observation_taper * unbiased(simulated_anomalies.T @ simulated_anomalies)
