@@ -18,6 +18,9 @@ after each chunk by W1 per coordinate to the exact posterior (mean and worst coo
 - 10,000 fresh prior particles transported by the same map (floor about 0.011): the map's own
   error, which rises with the iterations if the map fits its particles rather than their law.
 
+``--average K`` also scores, after each chunk, T's parameters averaged uniformly over the last K
+chunk ends (the map an average of iterates would give; the training goes on from the last one).
+
 ``--potential-optimizer`` replaces f's AdamW (3e-4, weight decay 1) by another optax optimiser
 with the same rate and decoupled weight decay (``potential_optimizer``): ``optimistic:o`` is
 optax's optimistic Adam with optimism o times the rate (a cure for limit cycles in min-max games),
@@ -74,6 +77,13 @@ def build(*, dim, num_train, num_evaluate, options, chunk, optimizer=None):
         return d.apply_key, update.init(d.init_key, d.prior, model), d.prior, d.fresh, d.simulated, floors
 
     @jax.jit
+    def score(state, transport, prior, fresh, simulated):
+        """W1 of the prior and of the fresh particles moved by the map ``transport``."""
+        training = state.training._replace(params=state.training.params._replace(transport=transport))
+        state = state._replace(training=training)
+        return w1(update.transport(state, prior, y)), w1(update.transport(state, fresh, y, simulated))
+
+    @jax.jit
     def step(key, state, prior, fresh, simulated):
         # The same y at every chunk would drive the filter's innovation trend (a moving average
         # over updates) below its floor after about 15 chunks, and the update would then stop
@@ -83,7 +93,7 @@ def build(*, dim, num_train, num_evaluate, options, chunk, optimizer=None):
         moved = update.transport(state, fresh, y, simulated)
         return state, {"in_sample": w1(posterior), "out_of_sample": w1(moved), "diverged": info.diverged}
 
-    return setup, step
+    return setup, step, score
 
 
 def plot(records, path):
@@ -130,6 +140,7 @@ def main():
     parser.add_argument("--seed", type=int, default=0, help="which of ot_sample_size.py's 2 seeds")
     parser.add_argument("--options", default="{}", help="ot() options as JSON (not num_iterations)")
     parser.add_argument("--potential-optimizer", default=None, help="f's optimiser (module docstring)")
+    parser.add_argument("--average", type=int, default=0, help="also score the mean of the last K chunk ends' T")
     parser.add_argument("--out", default="benchmarks/results/ot_dimension_size_rule/training_curve.json")
     parser.add_argument("--plot", default=None, help="draw the records of --out into this PNG instead")
     args = parser.parse_args()
@@ -140,15 +151,18 @@ def main():
     if args.potential_optimizer:
         optimizer = potential_optimizer(args.potential_optimizer, options.get("potential_learning_rate", 3e-4),
                                          options.get("potential_weight_decay", 1.0))
-    setup, step = build(dim=args.dim, num_train=args.train, num_evaluate=args.evaluate, options=options,
+    setup, step, score = build(dim=args.dim, num_train=args.train, num_evaluate=args.evaluate, options=options,
                         chunk=args.chunk, optimizer=optimizer)
     if args.potential_optimizer:  # recorded with the options: the plot's panels are per setting
         options = dict(options, potential_optimizer=args.potential_optimizer)
+    if args.average:
+        options = dict(options, average=args.average)
     apply_key, state, prior, fresh, simulated, floors = setup(jax.random.split(jax.random.key(2026), 2)[args.seed])
     record = {"dim": args.dim, "train": args.train, "evaluate": args.evaluate, "options": options,
               "chunk": args.chunk, "seed": args.seed, "device": str(jax.devices()[0]),
               **{name: float(np.mean(value)) for name, value in floors.items()}, "curve": []}
     print(json.dumps({k: v for k, v in record.items() if k != "curve"}), flush=True)
+    ends = []  # T at the last chunk ends (--average)
     for chunk in range(args.chunks):
         start = time.perf_counter()
         state, out = jax.block_until_ready(step(jax.random.fold_in(apply_key, chunk), state, prior, fresh, simulated))
@@ -157,6 +171,12 @@ def main():
         for name in ("in_sample", "out_of_sample"):
             point[name] = float(np.mean(out[name]))
             point[name + "_worst"] = float(np.max(out[name]))
+        if args.average:
+            ends = (ends + [state.training.params.transport])[-args.average:]
+            mean = jax.tree.map(lambda *leaves: sum(leaves) / len(leaves), *ends)
+            own, moved = score(state, mean, prior, fresh, simulated)
+            point.update(averaged_in_sample=float(np.mean(own)), averaged_in_sample_worst=float(np.max(own)),
+                         averaged_out_of_sample=float(np.mean(moved)))
         print(json.dumps(point), flush=True)
         record["curve"].append(point)
     records = json.load(open(args.out)) if os.path.exists(args.out) else []
