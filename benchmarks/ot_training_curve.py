@@ -152,7 +152,7 @@ def main():
         optimizer = potential_optimizer(args.potential_optimizer, options.get("potential_learning_rate", 3e-4),
                                          options.get("potential_weight_decay", 1.0))
     setup, step, score = build(dim=args.dim, num_train=args.train, num_evaluate=args.evaluate, options=options,
-                        chunk=args.chunk, optimizer=optimizer)
+                               chunk=args.chunk, optimizer=optimizer)
     if args.potential_optimizer:  # recorded with the options: the plot's panels are per setting
         options = dict(options, potential_optimizer=args.potential_optimizer)
     if args.average:
