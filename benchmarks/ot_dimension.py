@@ -234,7 +234,8 @@ def main():
     parser.add_argument("--ot-options", default="{}",
                         help="dynamic part: overrides of the experiment's OT filter options, as JSON")
     args = parser.parse_args()
-    ot_options = json.loads(args.ot_options)
+    # JSON has no tuples: a list is a (first, floor) schedule or another pair.
+    ot_options = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(args.ot_options).items()}
     methods = tuple(args.methods.split(","))
     dims = [int(v) for v in args.dims.split(",")]
     os.makedirs(args.out, exist_ok=True)
