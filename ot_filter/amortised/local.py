@@ -2,7 +2,7 @@
 
 Online, ``local_ot`` trains its shared map at every step from N particles' n local pairs, for
 a few dozen iterations (Lorenz-96: N = 100, 64 iterations from fresh networks); that much
-learning does not improve on the deterministic layer (README, Lorenz-96). A model whose local
+learning does not improve on the deterministic layer (docs/amortised.md, Lorenz-96). A model whose local
 problems are alike along a trajectory (a homogeneous ring after a burn-in) lets the map learn
 them once, offline, from the local pairs of many forecast ensembles:
 

@@ -48,7 +48,7 @@ TIME_STEP = 0.1
 # step halving to 64) and width 64. f's learning rate is 3e-4 (AdamW, weight decay 1; then three
 # times the package default, now the default): with only 64 warm-started iterations per step the
 # potential must keep up with the moving posterior. The mini-batch is ot()'s for n (128 at n <= 2,
-# 1024 at n = 10: W1 0.295 against 0.543 with 128 there, README "OT at scale"). Screened on 4
+# 1024 at n = 10: W1 0.295 against 0.543 with 128 there, docs/ot_at_scale.md). Screened on 4
 # simulations (MMD averaged over t >= 1): width 32 / f lr 1e-4: 0.200; width 64: 0.138; width 64 and f lr 3e-4: 0.078; the schedule's
 # floor 128 instead: 0.088 at 1.6 times the cost. The c-concavity check is off (a diagnostic).
 OT_FILTER_OPTIONS = {

@@ -12,7 +12,7 @@ the validation loss), and the shared map trained on their local pairs. Online:
   optimiser states).
 
 Measured with ``benchmarks/local_amortised_dynamic.py`` (N = 1000, 10 simulations, W1 per
-coordinate to the exact filter, floor 0.033-0.034; README "The localised update with a map
+coordinate to the exact filter, floor 0.033-0.034; docs/amortised.md, "The localised update with a map
 trained offline"): n = 10, bank of 400 ensembles: (a) 0.130, (b) 0.090, the online localised
 filter 0.138; n = 50, bank of 80: (a) 0.105, (b) 0.093, online 0.145. With a bank of 80 at
 n = 10 (a) was 0.273: what the map needs is local problems, about 4,000 (``bank_simulations``).

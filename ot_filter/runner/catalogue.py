@@ -379,7 +379,7 @@ def lorenz96_update(method: str, model=None):
         # The n = 2 sizes and f rate, not ot()'s rule for n = 40 (width 256, batches of 1024):
         # that is over 10 times the work per iteration, hours for the 4 x 500 steps on 2 CPU cores,
         # for a filter that falls back to the EnKF every 20-50 steps; the localised OT filter is
-        # the one for this model (measured figures: README, Lorenz-96).
+        # the one for this model (measured figures: docs/ot_at_scale.md, Lorenz-96).
         return otf.ot(num_iterations=(1024, 64), width=32, batch_size=128, potential_learning_rate=1e-4)
     if model is None:
         raise ValueError(f"the {method!r} update needs the model (its geometry)")

@@ -238,7 +238,7 @@ def local_ot(
 
 # Knots of a tabulated one-coordinate map. A ReLU map is piecewise linear in its one input, so
 # linear interpolation is exact except in the knot intervals that hold a kink. On the dynamic
-# example's offline maps (n = 2, 10, 50; README, "The localised update with a map trained
+# example's offline maps (n = 2, 10, 50; docs/amortised.md, "The localised update with a map trained
 # offline") the filters' W1 moved by at most 0.001 (paired over 10 truths). The online filter's
 # moved by 0.014 +- 0.008: its map changes at every step and costs far more to train than to
 # apply, so the default tabulates only a map used as is.
