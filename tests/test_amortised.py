@@ -407,6 +407,7 @@ def test_a_saved_map_reloads_bit_identically_and_filters_identically(which, trai
         np.testing.assert_array_equal(got, want)
     record = json.loads((tmp_path / "map" / "map.json").read_text())
     assert set(record["versions"]) == {"ot_filter", "jax", "flax"} and record["config"]["model"] == "scalar-lg"
+    assert record["versions"]["ot_filter"] == otf.__version__ and record["versions"]["jax"] == jax.__version__
     model = scalar_model()
     _, observations = otf.simulate(jax.random.key(17), model, 15)
     first = otf.run_filter(jax.random.key(18), model, otf.amortised_ot(trained_map, 3), observations, 100)

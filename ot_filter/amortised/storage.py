@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from importlib import metadata
 from pathlib import Path
 
 import flax
@@ -44,11 +43,12 @@ class MapMismatchError(ValueError):
     """A stored map was trained for another model, other dimensions, or its files disagree."""
 
 
-def _version(package: str) -> str:
-    try:
-        return metadata.version(package)
-    except metadata.PackageNotFoundError:
-        return "unknown"
+def _package_version() -> str:
+    """The version of the code that trained the map (as the runner's config.json records it):
+    an editable installation's metadata keeps the version it was installed at."""
+    from ot_filter import __version__  # here: the package imports this module
+
+    return __version__
 
 
 def save_map(path: str | os.PathLike, trained_map: AmortisedMap) -> Path:
@@ -74,7 +74,7 @@ def _write(path, arrays, kind: str, config, info: dict, params, **extra) -> Path
         "dtype": str(jax.tree.leaves(params)[0].dtype),
         **extra,
         "sha256": hashlib.sha256(payload).hexdigest(),
-        "versions": {"ot_filter": _version("ot_filter"), "jax": jax.__version__, "flax": flax.__version__},
+        "versions": {"ot_filter": _package_version(), "jax": jax.__version__, "flax": flax.__version__},
     }
     _write_atomic(directory / PARAMS_FILE, payload)
     _write_atomic(directory / RECORD_FILE, json.dumps(record, indent=2, default=float).encode())
