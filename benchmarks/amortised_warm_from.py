@@ -53,6 +53,7 @@ def score(experiment: str, dim: int, observed, name: str, update, filter_key: in
                                         filter_key=jax.random.key(filter_key))["metrics"]
         entry = summary[name]
         return {"mse": entry["mse_after_settle"]["mean"], "stderr": entry["mse_after_settle"]["stderr"],
+                "mse_per_simulation": entry.get("mse_after_settle_per_simulation"),
                 "diverged_steps": entry.get("diverged_steps"), "run_s": entry["run_s"]}
     from ot_filter.experiments import dynamic_example
 

@@ -10,8 +10,13 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
   ``local_ot`` is the localised OT filter with the deterministic layer (the LETKF's Gaspari-Cohn
   taper, windows out to its support: 29 observations), fresh networks at every step (T starts as
   the layer) trained for 64 iterations.
-- ``local_ot:K`` or ``local_ot:K:F``: ``local_ot`` with K iterations a step (fresh networks at
-  every step) and f's learning rate F (default 1e-4: f moves little in 64 steps of it).
+- ``local_ot:K``, ``local_ot:K:F``, ``local_ot:K:F:B`` or ``local_ot:K:F:B:I``: ``local_ot`` with
+  K iterations a step (fresh networks at every step), f's learning rate F (default 1e-4: f moves
+  little in 64 steps of it; leave it empty, ``local_ot:64::512``, to keep it), mini-batches of B
+  local pairs (default 128) and the layer's inflation I (default the catalogue's 1.04).
+- ``letkf:R:I``: the LETKF with a Gaspari-Cohn radius R and inflation I (the catalogue's: 4 and
+  1.04, tuned at N = 100), to check that a comparison at another N is not won against an
+  untuned LETKF.
 - ``layer``: that deterministic layer alone (the network never used): the LETKF itself
   (``tests/test_local_ot.py``).
 - ``letkf_step``, ``layer_step``, ``local_ot_step``: the same three with a step taper of the
@@ -54,14 +59,23 @@ METHODS = ("enkf", "letkf", "letkf_step", "sir", "layer", "layer_step", "local_o
 def build(method: str, model):
     local = LORENZ96_LOCAL
     radius = local["ot_taper_radius"]
+    if method.startswith("letkf:"):  # letkf:R:I, a Gaspari-Cohn radius R and inflation I
+        radius, inflation = (float(v) for v in method.split(":")[1:])
+        return otf.letkf(otf.localisation(model.geometry, radius), inflation=inflation)
     if method == "letkf_step":
         return otf.letkf(otf.localisation(model.geometry, radius, taper="step"), inflation=local["inflation"])
     if method in ("layer", "layer_step"):  # a loss bound no training meets: every step is the layer alone
         return lorenz96_local_ot(model, 1, taper="step" if method == "layer_step" else "gaspari_cohn",
                                  divergence_threshold=1e-12)
     if method.startswith("local_ot:"):
-        iterations, *rate = method.split(":")[1:]
-        options = dict(potential_learning_rate=float(rate[0])) if rate else {}
+        iterations, *rest = method.split(":")[1:]
+        options = {}
+        if rest and rest[0]:
+            options["potential_learning_rate"] = float(rest[0])
+        if len(rest) > 1 and rest[1]:
+            options["batch_size"] = int(rest[1])
+        if len(rest) > 2 and rest[2]:
+            options["inflation"] = float(rest[2])
         return lorenz96_local_ot(model, int(iterations), warm_start=False, **options)
     if method == "local_ot_step":
         return lorenz96_local_ot(model, local["ot_iterations"], taper="step", warm_start=False)

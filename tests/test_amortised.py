@@ -23,6 +23,8 @@ from ot_filter.amortised import (
     map_recipe,
     save_map,
     select_map,
+    collect_forecasts,
+    distil_map,
     split_bank,
     stack_banks,
     train_amortised,
@@ -133,18 +135,25 @@ def _kalman_and_filters(update, num_particles=200, steps=40):
     return exact, result
 
 
-@pytest.mark.long
-def test_the_amortised_filter_matches_the_kalman_filter_without_training_online(trained):
-    # The posterior mean's Monte-Carlo error at N = 200 is sqrt(P_a / N) ~ 0.036 (P_a ~ 0.26);
-    # the prior mean is off by K |y - x_f| ~ 0.5: a map that does not condition fails by far.
-    trained_map, _, _ = trained
-    exact, result = _kalman_and_filters(otf.amortised_ot(trained_map))
+def _assert_matches_kalman(update):
+    """The filter's mean within 3 Monte-Carlo errors of the Kalman filter's (N = 200, after 5
+    steps), its variance within a third, no step fallen back; returns its result."""
+    exact, result = _kalman_and_filters(update)
     monte_carlo = float(np.sqrt(np.mean(exact.cov[5:, 0, 0]) / 200))
     error = np.sqrt(np.mean((np.asarray(result.mean[5:, 0]) - np.asarray(exact.mean[5:, 0])) ** 2))
     assert error < 3 * monte_carlo, (error, monte_carlo)
     variance_ratio = np.mean(np.asarray(result.spread[5:]) ** 2) / np.mean(np.asarray(exact.cov[5:, 0, 0]))
     assert 0.75 < variance_ratio < 1.33, variance_ratio
     assert not np.any(np.asarray(result.info.diverged))
+    return result
+
+
+@pytest.mark.long
+def test_the_amortised_filter_matches_the_kalman_filter_without_training_online(trained):
+    # The posterior mean's Monte-Carlo error at N = 200 is sqrt(P_a / N) ~ 0.036 (P_a ~ 0.26);
+    # the prior mean is off by K |y - x_f| ~ 0.5: a map that does not condition fails by far.
+    trained_map, _, _ = trained
+    result = _assert_matches_kalman(otf.amortised_ot(trained_map))
     assert np.all(np.isinf(np.asarray(result.info.loss))) or result.info.loss.shape[-1] == 0
     assert np.all(np.isfinite(np.asarray(result.info.final_loss)))
 
@@ -599,3 +608,43 @@ def test_candidates_trained_in_worker_processes_are_the_candidates_trained_in_tu
                         candidates={"plain": {}}, **small)
     for got, want in zip(jax.tree.leaves(folded.params), jax.tree.leaves(maps[False][1]["plain_second_training"].params)):
         np.testing.assert_array_equal(got, want)
+
+
+def _distilled(trained_map, width, num_iterations):
+    model = scalar_model()
+    bank = collect_forecasts(jax.random.key(11), model, otf.amortised_ot(trained_map), num_simulations=10,
+                             num_steps=30, num_particles=200, burn_in=5)
+    training, validation = split_bank(bank, 0.2)
+    return distil_map(jax.random.key(12), trained_map, model, training, validation, width=width,
+                      num_iterations=num_iterations, batch_size=256, ensembles_per_batch=8, chunks=2)
+
+
+@pytest.mark.long
+def test_a_map_distilled_into_narrower_networks_still_matches_the_kalman_filter(trained, tmp_path):
+    # The teacher's test above with a student a quarter as wide, fitted by regression to the
+    # teacher's T and f on its own filter's forecasts. An untrained student is the identity
+    # (relative error 1: no conditioning) and fails the Kalman comparison by far.
+    trained_map, _, _ = trained
+    student, history = _distilled(trained_map, 8, 3000)
+    assert student.config == trained_map.config._replace(width=8)
+    assert student.info["distilled_from"]["width"] == 32 and student.info["finite"]
+    assert history.transport_error[-1] < 0.1 and history.transport_error[-1] < history.transport_error[0]
+    _assert_matches_kalman(otf.amortised_ot(student))
+    # A student is a map like any other: it saves and reloads with its record.
+    save_map(tmp_path / "student", student)
+    again = load_map(tmp_path / "student", model="scalar-lg", state_dim=1)
+    assert again.config.width == 8 and again.info["distilled_from"]["width"] == 32
+    np.testing.assert_array_equal(jax.tree.leaves(again.params)[0], jax.tree.leaves(student.params)[0])
+
+
+def test_distillation_checks_its_arguments(contextual):
+    model = scalar_model()
+    bank = collect_forecasts(jax.random.key(3), model, otf.enkf(), num_simulations=2, num_steps=4,
+                                           num_particles=20)
+    other = bank._replace(particles=jnp.zeros(bank.particles.shape[:2] + (2,)))
+    with pytest.raises(ValueError, match="validation must be a ForecastBank"):
+        distil_map(jax.random.key(0), contextual, model, bank, other, width=4)
+    with pytest.raises(ValueError, match="batch_size"):
+        distil_map(jax.random.key(0), contextual, model, bank, bank, width=4, batch_size=30, ensembles_per_batch=4)
+    with pytest.raises(TypeError, match="teacher must be an AmortisedMap"):
+        distil_map(jax.random.key(0), contextual.params, model, bank, bank, width=4)

@@ -2,10 +2,12 @@
 simulated trajectories (``training``, ``bank``), chosen among candidates by how well its filter
 tracks simulated truths (``selection``), saved and loaded with its record (``storage``), and
 filtered with by ``ot_filter.amortised_ot`` (no training online, or a few warm-started
-iterations per step). ``local``: the localised update's shared map trained offline the same way
+iterations per step; ``distillation``: a found map fitted into narrower networks for a cheaper
+step). ``local``: the localised update's shared map trained offline the same way
 (filtered with by ``ot_filter.local_ot(..., initial_map=...)``)."""
 
 from ot_filter.amortised.bank import ForecastBank, bank_batch, forecast_bank, split_bank
+from ot_filter.amortised.distillation import DistillationHistory, distil_map
 from ot_filter.amortised.local import (
     LocalBank,
     LocalMap,
@@ -33,6 +35,7 @@ from ot_filter.amortised.training import (
 
 __all__ = [
     "AmortisedMap",
+    "DistillationHistory",
     "ForecastBank",
     "LocalBank",
     "LocalMap",
@@ -44,6 +47,7 @@ __all__ = [
     "amortised_local_ot",
     "bank_batch",
     "collect_forecasts",
+    "distil_map",
     "forecast_bank",
     "local_bank",
     "local_bank_batch",

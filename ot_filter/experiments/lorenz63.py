@@ -153,6 +153,7 @@ def run_lorenz63(
         summary[name] = {
             "mse_over_time": np.exp(np.log(mse).mean(axis=0)).round(4).tolist(),  # geometric mean
             "mse_after_settle": stats(mse[:, settled_from:].mean(axis=1)),
+            "mse_after_settle_per_simulation": mse[:, settled_from:].mean(axis=1).round(4).tolist(),  # for pairing
             "max_mse_after_settle_per_simulation": late.round(4).tolist(),
             "settled_simulations": int(np.sum(late < MSE_TARGET)),
             "settled_on_average_simulations": int(np.sum(mse[:, settled_from:].mean(axis=1) < MSE_TARGET)),

@@ -350,9 +350,11 @@ def _lorenz63_plot(options, groups, out):
 LORENZ96_LOCAL = dict(letkf_radius=4.0, ot_taper_radius=4.0, ot_state_radius=0.0, inflation=1.04, ot_iterations=64)
 
 
-def lorenz96_local_ot(model, num_iterations, taper: str = "gaspari_cohn", **options):
+def lorenz96_local_ot(model, num_iterations, taper: str = "gaspari_cohn", inflation: float | None = None,
+                      **options):
     """The catalogue's localised OT update on ``model``'s geometry: the deterministic layer with
-    ``taper`` at ``LORENZ96_LOCAL``'s radius (Gaspari-Cohn: windows out to its support)."""
+    ``taper`` at ``LORENZ96_LOCAL``'s radius (Gaspari-Cohn: windows out to its support) and its
+    inflation unless ``inflation`` is given."""
     import ot_filter as otf
     from ot_filter.localisation import taper_support
 
@@ -360,7 +362,7 @@ def lorenz96_local_ot(model, num_iterations, taper: str = "gaspari_cohn", **opti
     radius = local["ot_taper_radius"]
     windows = otf.local_windows(model.geometry, taper_support(radius, taper), local["ot_state_radius"])
     return otf.local_ot(windows, num_iterations=num_iterations, enkf_layer="deterministic", taper=taper,
-                        inflation=local["inflation"], **options)
+                        inflation=local["inflation"] if inflation is None else inflation, **options)
 
 
 def lorenz96_update(method: str, model=None):
