@@ -311,12 +311,12 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--noise", type=_float_list, help="observation noise levels (static example)")
     run.add_argument("--dt", type=float, help="time step (continuous-time experiments)")
     run.add_argument("--out", help="output directory (default ot-filter-runs/EXPERIMENT)")
-    run.add_argument("--maps", help="amortised OT maps (methods amortised, amortised_warm, local_amortised, "
-                                    "local_amortised_warm): read from here if trained before for this model, else "
-                                    "trained and stored here (default OUT/maps)")
+    run.add_argument("--maps", help="amortised OT maps (methods amortised, amortised_warm, amortised_distilled, "
+                                    "local_amortised, local_amortised_warm): read from here if trained before for "
+                                    "this model, else trained and stored here (default OUT/maps)")
     run.add_argument("--map-iterations", dest="map_iterations", type=int,
-                     help="offline training iterations of an amortised OT map (of each candidate) or a local map "
-                          "that is not stored yet")
+                     help="offline training iterations of an amortised OT map (of each candidate), its distilled "
+                          "student or a local map that is not stored yet")
     run.add_argument("--quick", action="store_true", help="small settings: under two minutes on 2 cores")
     run.add_argument("--no-progress", action="store_true", help="no progress bar or step reports")
     demo = commands.add_parser("demo", help="Lorenz-63 with EnKF and SIR, and the bimodal example where the OT "

@@ -201,6 +201,30 @@ def test_an_amortised_map_is_trained_once_stored_in_the_run_and_reused_by_a_late
 
 
 @pytest.mark.long
+def test_the_distilled_method_fits_the_kept_map_into_narrower_networks_stored_beside_it(tmp_path):
+    from ot_filter.amortised import load_map
+    from ot_filter.experiments.amortised import DISTILLED_WIDTH
+    from ot_filter.runner import run_experiment
+
+    small = dict(particles=(40,), steps=3, simulations=2, block=1, map_iterations=60, methods=("amortised_distilled",))
+    first = run_experiment("dynamic", small, str(tmp_path / "first"), progress=False, command=["test"],
+                           log=lambda line: None)
+    teacher = load_map(tmp_path / "first" / "maps" / "dynamic-n2", model="dynamic-n2", state_dim=2)
+    stored = tmp_path / "first" / "maps" / "dynamic-n2" / "distilled"
+    student = load_map(stored, model="dynamic-n2", state_dim=2)
+    assert student.config == teacher.config._replace(width=DISTILLED_WIDTH)
+    assert student.info["distilled_from"]["width"] == teacher.config.width
+    assert student.info["distillation"]["iterations"] == 60
+    (row,) = first.metrics["results"]
+    assert row["method"] == "amortised_distilled" and np.all(np.isfinite(row["per_simulation"]["w1"]["values"]))
+    written = os.path.getmtime(stored / "map.json")
+    # A later run pointed at the stored maps distils nothing again.
+    run_experiment("dynamic", dict(small, maps=str(tmp_path / "first" / "maps")), str(tmp_path / "second"),
+                   progress=False, command=["test"], log=lambda line: None)
+    assert os.path.getmtime(stored / "map.json") == written
+
+
+@pytest.mark.long
 def test_a_local_offline_map_is_trained_once_stored_in_the_run_and_reused_by_a_later_run(tmp_path, monkeypatch):
     """Methods local_amortised and local_amortised_warm: the first cell trains the dynamic
     example's local map into the run's maps/ (with its validation curve), later cells and runs

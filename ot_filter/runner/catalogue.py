@@ -119,6 +119,7 @@ def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=Fa
 
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
           "local_ot": "OT, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
+          "amortised_distilled": "amortised OT (a), distilled map",
           "local_amortised": "OT, localised, offline map (a)", "local_amortised_warm": "OT, localised, offline map (b)",
           "constant": "FPF, constant gain", "kernel": "FPF, kernel gain", "learned": "FPF, learned gain"}
 
@@ -182,7 +183,7 @@ DYNAMIC_KERNELS = {  # (bandwidth, standardise): the chapter's settings for each
 }
 
 
-AMORTISED_METHODS = ("amortised", "amortised_warm")
+AMORTISED_METHODS = ("amortised", "amortised_warm", "amortised_distilled")
 LOCAL_AMORTISED_METHODS = ("local_amortised", "local_amortised_warm")  # the dynamic example's
 
 
@@ -201,12 +202,18 @@ def _amortised(options, experiment, method, num_particles, **model):
                                      model["dim"], num_particles=num_particles, num_steps=options["steps"],
                                      num_iterations=options["map_iterations"])
         return (), {method: local_amortised_updates(local_map, model["dim"])[method]}
-    from ot_filter.experiments.amortised import amortised_updates, map_for, map_name
+    from ot_filter.experiments.amortised import amortised_updates, distilled_map_for, map_for, map_name
+    from ot_filter.updates.amortised import amortised_ot
 
     directory = os.path.join(maps, map_name(experiment, **model))
     # Offline trajectories as long as the run's, with its particle count.
     trained, _ = map_for(directory, cell_key(options["seed"], 999_983), experiment, num_particles=num_particles,
                          num_steps=options["steps"], num_iterations=options["map_iterations"], **model)
+    if method == "amortised_distilled":  # the kept map fitted into narrower networks, stored beside it
+        student = distilled_map_for(os.path.join(directory, "distilled"), cell_key(options["seed"], 999_961), trained,
+                                    experiment, num_particles=num_particles, num_steps=options["steps"],
+                                    num_iterations=options["map_iterations"], **model)
+        return (), {method: amortised_ot(student)}
     return (), {method: amortised_updates(trained, experiment)[method]}
 
 
