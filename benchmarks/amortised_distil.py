@@ -32,26 +32,25 @@ import jax  # noqa: E402
 
 from amortised_cost import measure  # noqa: E402
 from amortised_warm_from import TRUTHS_KEY, score  # noqa: E402
-from ot_filter.amortised import collect_forecasts, load_map, save_map, split_bank  # noqa: E402
+from ot_filter.amortised import load_map, save_map  # noqa: E402
 from ot_filter.amortised.distillation import distil_map  # noqa: E402
 from ot_filter.experiments._common import write_text_atomic  # noqa: E402
-from ot_filter.experiments.amortised import experiment_model, offline_options  # noqa: E402
+from ot_filter.experiments.amortised import experiment_model, teacher_bank  # noqa: E402
 from ot_filter.updates.amortised import amortised_ot  # noqa: E402
 from ot_filter.updates.enkf import enkf  # noqa: E402
 
 COST_STEPS = {"dynamic": 20, "lorenz63": 100}
 
 
+def model_observed(args) -> tuple:
+    return tuple(int(i) for i in args.observed.split(","))
+
+
 def distil_all(args, model, teacher, record, path) -> dict:
     """The bank of the teacher's own forecasts and a student of each width (saved under --out/maps)."""
-    offline = offline_options(args.experiment, args.dim)
     bank_key, distil_key = jax.random.split(jax.random.key(args.key))
     started = time.perf_counter()
-    bank = collect_forecasts(bank_key, model, amortised_ot(teacher), num_simulations=offline["num_simulations"],
-                             num_steps=offline["num_steps"], num_particles=1000,
-                             inflation=teacher.config.inflation)
-    training, validation = split_bank(bank, 0.2)
-    del bank
+    training, validation = teacher_bank(bank_key, teacher, args.experiment, args.dim, model_observed(args))
     record["bank_s"] = time.perf_counter() - started
     maps = {"teacher": teacher}
     for width in (int(w) for w in args.widths.split(",")):
@@ -89,7 +88,7 @@ def main():
     args = parser.parse_args()
     skip = set(filter(None, args.skip.split(",")))
     os.makedirs(os.path.join(args.out, "maps"), exist_ok=True)
-    observed = tuple(int(i) for i in args.observed.split(","))
+    observed = model_observed(args)
     model = experiment_model(args.experiment, args.dim, observed)
     teacher = load_map(args.map)
     record = {"experiment": args.experiment, "dim": args.dim, "observed": list(observed), "map": args.map,

@@ -344,20 +344,28 @@ def distilled_map_for(directory: str, key: jax.Array, trained: AmortisedMap, exp
     steps: its default when None) on a bank of its own (a) forecasts as large as the offline
     stage's (``offline_options``; ``num_steps`` overrides the trajectories' length), a fifth held
     out, and stored in ``directory``."""
-    name = map_name(experiment, dim, observed)
-    model = experiment_model(experiment, dim, observed)
     if os.path.exists(os.path.join(directory, "map.json")):
-        return load_map(directory, model=name, state_dim=trained.config.state_dim)
-    offline = offline_options(experiment, dim)
+        return load_map(directory, model=map_name(experiment, dim, observed), state_dim=trained.config.state_dim)
     bank_key, distil_key = jax.random.split(key)
-    bank = collect_forecasts(bank_key, model, amortised_ot(trained), num_simulations=offline["num_simulations"],
-                             num_steps=offline["num_steps"] if num_steps is None else num_steps,
-                             num_particles=num_particles, inflation=trained.config.inflation)
-    training, validation = split_bank(bank, 0.2)
+    training, validation = teacher_bank(bank_key, trained, experiment, dim, observed, num_particles, num_steps)
     options = {} if num_iterations is None else {"num_iterations": num_iterations, "chunks": 1}
-    student, _ = distil_map(distil_key, trained, model, training, validation, width=width, **options)
+    student, _ = distil_map(distil_key, trained, experiment_model(experiment, dim, observed), training, validation,
+                            width=width, **options)
     save_map(directory, student)
     return student
+
+
+def teacher_bank(key: jax.Array, trained: AmortisedMap, experiment: str, dim: int = 2,
+                 observed: Sequence[int] = (0, 2), num_particles: int = 1000, num_steps: int | None = None):
+    """``(training, validation)`` banks of ``trained``'s own (a) forecasts, as many simulations as
+    the offline stage's (``offline_options``; ``num_steps`` overrides their length), a fifth held
+    out: what ``distil_map`` fits a student on."""
+    offline = offline_options(experiment, dim)
+    bank = collect_forecasts(key, experiment_model(experiment, dim, observed), amortised_ot(trained),
+                             num_simulations=offline["num_simulations"],
+                             num_steps=offline["num_steps"] if num_steps is None else num_steps,
+                             num_particles=num_particles, inflation=trained.config.inflation)
+    return split_bank(bank, 0.2)
 
 
 def amortised_updates(trained: AmortisedMap, experiment: str) -> dict:
