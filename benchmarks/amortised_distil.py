@@ -5,12 +5,16 @@ Lorenz-63 the width-64 map's forward pass kept it above).
     PYTHONPATH=.:benchmarks python benchmarks/amortised_distil.py --experiment dynamic --dim 2
         --map benchmarks/results/amortised_ot/maps/dynamic-n2 [--widths 16,24] [--iterations 20000]
         [--filter-keys 0] [--rounds 8] [--out DIR]
+    PYTHONPATH=.:benchmarks python benchmarks/amortised_distil.py --experiment dynamic --dim 10
+        --map benchmarks/results/amortised_ot/maps/dynamic-n10
+        --teachers benchmarks/results/amortised_ot/maps/dynamic-n10/candidates/plain --widths 64 ...
     PYTHONPATH=.:benchmarks python benchmarks/amortised_distil.py --experiment lorenz63 --observed 0,2
         --map benchmarks/results/amortised_ot/maps/lorenz63-obs0,2 ...
 
 1. The bank: the forecast ensembles of the teacher's own filter (a) on simulated trajectories of
    the offline stage's size (``offline_options``), a fifth held out.
-2. ``distil_map`` for each width; the students are saved under ``DIR/maps``.
+2. ``distil_map`` for each width (of the average of --map and --teachers when given); the
+   students are saved under ``DIR/maps``.
 3. (a) with the teacher and with each student on the table's truths (``amortised_warm_from.score``:
    the dynamic example's W1 to the exact filter, Lorenz-63's MSE to the truth), every filter on the
    same filter keys (paired).
@@ -54,7 +58,8 @@ def distil_all(args, model, teacher, record, path) -> dict:
     record["bank_s"] = time.perf_counter() - started
     maps = {"teacher": teacher}
     for width in (int(w) for w in args.widths.split(",")):
-        student, history = distil_map(jax.random.fold_in(distil_key, width), teacher, model, training, validation,
+        teachers = [teacher] + [load_map(path) for path in filter(None, args.teachers.split(","))]
+        student, history = distil_map(jax.random.fold_in(distil_key, width), teachers, model, training, validation,
                                       width=width, num_iterations=args.iterations,
                                       learning_rate=args.learning_rate)
         save_map(os.path.join(args.out, "maps", f"width{width}"), student)
@@ -74,6 +79,8 @@ def main():
     parser.add_argument("--dim", type=int, default=2)
     parser.add_argument("--observed", default="0,2", help="Lorenz-63's observed components (0-based)")
     parser.add_argument("--map", required=True, help="the stored teacher map's directory")
+    parser.add_argument("--teachers", default="",
+                        help="further maps (comma-separated directories) whose average with --map the students fit")
     parser.add_argument("--widths", default="16,24")
     parser.add_argument("--iterations", type=int, default=20_000)
     parser.add_argument("--learning-rate", type=float, default=3e-3)
@@ -92,11 +99,11 @@ def main():
     model = experiment_model(args.experiment, args.dim, observed)
     teacher = load_map(args.map)
     record = {"experiment": args.experiment, "dim": args.dim, "observed": list(observed), "map": args.map,
-              "teacher_width": teacher.config.width, "truths_key": args.truths_key, "students": {}, "scores": {}}
+              "teacher_width": teacher.config.width, "teachers": args.teachers, "truths_key": args.truths_key, "students": {}, "scores": {}}
     path = os.path.join(args.out, "distil.json")
 
     if args.reuse:  # the students of an earlier run, and its record
-        record = json.load(open(path))
+        record = dict(json.load(open(path)), truths_key=args.truths_key)
         maps = {"teacher": teacher, **{f"width{w}": load_map(os.path.join(args.out, "maps", f"width{w}"))
                                        for w in (int(w) for w in args.widths.split(","))}}
     else:

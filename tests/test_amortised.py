@@ -648,3 +648,102 @@ def test_distillation_checks_its_arguments(contextual):
         distil_map(jax.random.key(0), contextual, model, bank, bank, width=4, batch_size=30, ensembles_per_batch=4)
     with pytest.raises(TypeError, match="teacher must be an AmortisedMap"):
         distil_map(jax.random.key(0), contextual.params, model, bank, bank, width=4)
+
+
+def _rescaled(trained_map, shift, factor):
+    """The same networks reading the context through another standardisation (as a training of
+    the same setting on another bank would)."""
+    scaling = trained_map.context_scaling
+    return trained_map._replace(context_scaling=scaling._replace(mean=scaling.mean + shift, scale=scaling.scale * factor))
+
+
+def test_the_average_of_several_teachers_reads_each_through_its_own_context_scaling(contextual):
+    # Dense reference: each teacher's T and f on a batch built with its OWN context scaling (same
+    # key: same pairs and observations), averaged. The distillation builds the batch once, with
+    # the first teacher's scaling, and converts the context for the others.
+    from ot_filter.amortised.distillation import _context_conversions, teacher_average
+
+    model = scalar_model()
+    bank = collect_forecasts(jax.random.key(3), model, otf.enkf(), num_simulations=3, num_steps=5, num_particles=50)
+    first, second = contextual, _rescaled(contextual, 0.7, 2.5)
+    structure = map_recipe(first.config, context_scaling=first.context_scaling)[1]
+
+    def batch(one):
+        return bank_batch(jax.random.key(4), bank, model.sample_observation, batch_size=32, ensembles_per_batch=4,
+                          enkf_layer=False, context_scaling=one.context_scaling)
+
+    own = [teacher_average((one.params,), None if one.context_scaling is None else _context_conversions((one,)),
+                           batch(one), (structure,)) for one in (first, second)]
+    assert float(jnp.max(jnp.abs(own[0][2] - own[1][2]))) > 1e-3  # the scalings change T: the check can fail
+    inputs, y, target, f_target = teacher_average((first.params, second.params), _context_conversions((first, second)),
+                                                  batch(first), (structure, structure))
+    np.testing.assert_allclose(target, (own[0][2] + own[1][2]) / 2, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(y, own[0][1])
+    potential = networks(structure)[0]
+    points = jnp.concatenate([batch(first).x, target])
+    expected = sum(potential.apply(one.params.potential, points, jnp.concatenate([b.y, b.y])) for one, b in
+                   ((first, None), (second, None)) for b in [_with_context(batch(one))]) / 2
+    np.testing.assert_allclose(f_target, expected, rtol=1e-5, atol=1e-6)
+
+
+def _with_context(batch):
+    """The batch's observations with its context appended (what the networks condition on)."""
+    from ot_filter.transport.context import conditioning
+
+    return batch._replace(y=conditioning(batch.y, batch.context))
+
+
+def test_a_teacher_given_twice_distils_as_it_does_alone(contextual):
+    model = scalar_model()
+    bank = collect_forecasts(jax.random.key(3), model, otf.enkf(), num_simulations=4, num_steps=6, num_particles=40)
+    training, validation = split_bank(bank, 0.25)
+    options = dict(width=4, num_iterations=40, batch_size=32, ensembles_per_batch=4, chunks=2)
+    alone, _ = distil_map(jax.random.key(5), contextual, model, training, validation, **options)
+    twice, _ = distil_map(jax.random.key(5), [contextual, contextual], model, training, validation, **options)
+    for got, want in zip(jax.tree.leaves(twice.params), jax.tree.leaves(alone.params)):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert [one["width"] for one in twice.info["distilled_from"]["teachers"]] == [8, 8]
+    assert alone.info["distilled_from"]["width"] == 8
+
+
+def test_distilling_several_teachers_checks_they_share_a_setting(contextual):
+    model = scalar_model()
+    bank = collect_forecasts(jax.random.key(3), model, otf.enkf(), num_simulations=2, num_steps=4, num_particles=20)
+    other = contextual._replace(config=contextual.config._replace(inner_steps=3))
+    with pytest.raises(ValueError, match=r"teacher\[1\] was trained .* other settings"):
+        distil_map(jax.random.key(0), [contextual, other], model, bank, bank, width=4)
+    with pytest.raises(TypeError, match="non-empty sequence"):
+        distil_map(jax.random.key(0), [], model, bank, bank, width=4)
+    # Widths may differ: a wider teacher beside a narrower one is accepted.
+    from ot_filter.updates.ot import init_training
+
+    config = contextual.config._replace(width=12)
+    settings, structure = map_recipe(config, context_scaling=contextual.context_scaling)
+    params = init_training(settings, structure, jax.random.key(2), 1, 1, jnp.float32).params
+    wider = AmortisedMap(params, contextual.context_scaling, config, {})
+    student, _ = distil_map(jax.random.key(0), [contextual, wider], model, bank, bank, width=4, num_iterations=4,
+                            batch_size=16, ensembles_per_batch=4, chunks=1)
+    assert student.config.width == 4 and student.info["finite"]
+
+
+def test_the_candidates_of_the_kept_maps_setting_are_the_distillations_teachers(contextual, tmp_path):
+    from ot_filter.experiments.amortised import distilled_width, same_setting_candidates
+
+    assert same_setting_candidates(str(tmp_path), contextual) == [contextual]  # no candidates stored
+    save_map(tmp_path / "candidates" / "plain", contextual)
+    assert same_setting_candidates(str(tmp_path), contextual) == [contextual]  # one: nothing to average
+    again = _rescaled(contextual, 0.1, 1.5)
+    save_map(tmp_path / "candidates" / "plain_second_training", again)
+    save_map(tmp_path / "candidates" / "enkf_layer", contextual._replace(config=contextual.config._replace(enkf_layer=True)))
+    found = same_setting_candidates(str(tmp_path), contextual)
+    assert len(found) == 2 and all(one.config == contextual.config for one in found)
+    np.testing.assert_allclose(found[1].context_scaling.mean, again.context_scaling.mean)
+    assert distilled_width(2, 64) == distilled_width(3, 64) == 16 and distilled_width(10, 64) == 64
+    # A candidate the held-out selection found worse than the kept one is left out.
+    def selection(second):
+        scores = {"plain": {"mse": 1.0, "stderr": 0.1, "per_simulation": [0.9, 1.0, 1.1]},
+                  "plain_second_training": {"mse": float(np.mean(second)), "stderr": 0.1, "per_simulation": second}}
+        return contextual._replace(info=dict(contextual.info, selection={"chosen": "plain", "scores": scores}))
+
+    assert len(same_setting_candidates(str(tmp_path), selection([0.95, 1.1, 1.1]))) == 2
+    assert same_setting_candidates(str(tmp_path), worse := selection([1.9, 2.0, 2.1])) == [worse]

@@ -332,25 +332,72 @@ def history_arrays(histories: list[TrainingHistory]) -> dict:
 # stored maps it filtered as well as the width-64 map (dynamic n = 2: W1 +0.0045 ± 0.0034;
 # Lorenz-63 MSE -0.011 ± 0.032 and -0.090 ± 0.043, 30 paired runs) at 2.5-2.6 EnKF steps a
 # step instead of 3.8-4.0 (n = 2) and 2.1-2.3 instead of 3.3-3.6 (Lorenz-63), both cores
-# (``benchmarks/results/amortised_ot/distilled/``).
+# (``benchmarks/results/amortised_ot/distilled/``). Up to n = 3 only (``distilled_width``).
 DISTILLED_WIDTH = 16
+
+
+def distilled_width(state_dim: int, teacher_width: int) -> int:
+    """The student's width: ``DISTILLED_WIDTH`` up to n = 3 (measured at n = 2 and on Lorenz-63),
+    the teacher's above. At n = 10 a narrower student loses what the map conditions on: width 32
+    filtered (a) with W1 0.737 where the teacher gave 0.361 and a width-64 student 0.364 (held-out
+    relative error of T 0.41 against 0.19; 10 truths), and the width-64 map's (a) already costs
+    about 2 EnKF steps there (``benchmarks/results/amortised_ot/distilled/n10/``)."""
+    return DISTILLED_WIDTH if state_dim <= 3 else teacher_width
+
+
+def same_setting_candidates(directory: str, trained: AmortisedMap) -> list[AmortisedMap]:
+    """The offline stage's candidates stored under ``directory/candidates`` that were trained with
+    ``trained``'s setting (the dynamic example's two trainings of the plain map) and that its
+    held-out selection could not tell from it (``_as_good_as_kept``), or ``[trained]`` when there
+    are not two such (a map stored without its candidates, or chosen among settings that differ).
+    An average with a worse training is worse than the better one alone: on Lorenz-63 (x1 and x3)
+    a second training of the plain map filtered (a) with MSE 2.3-2.9, the stored map 0.88-0.90,
+    and their average 0.92-1.24 (6 filter keys; ``benchmarks/results/amortised_ot/distilled/``)."""
+    root = os.path.join(directory, "candidates")
+    selection = trained.info.get("selection") or {}
+    found = []
+    for label in sorted(os.listdir(root)) if os.path.isdir(root) else ():
+        if os.path.exists(os.path.join(root, label, "map.json")) and _as_good_as_kept(selection, label):
+            one = load_map(os.path.join(root, label), model=trained.config.model, state_dim=trained.config.state_dim)
+            if one.config == trained.config:
+                found.append(one)
+    return found if len(found) > 1 else [trained]
+
+
+def _as_good_as_kept(selection: dict, label: str) -> bool:
+    """Whether candidate ``label``'s held-out MSE (``select_map``'s, in the kept map's record) is
+    within 2 standard errors of the kept candidate's (paired over the held-out truths where the
+    record has each one's per simulation). True where the record does not score it."""
+    scores = selection.get("scores", {})
+    if label not in scores or selection.get("chosen") not in scores:
+        return True
+    one, kept = scores[label], scores[selection["chosen"]]
+    if "per_simulation" in one and "per_simulation" in kept:
+        difference = np.asarray(one["per_simulation"]) - np.asarray(kept["per_simulation"])
+        error = difference.std(ddof=1) / np.sqrt(difference.size) if difference.size > 1 else 0.0
+        return bool(difference.mean() <= 2 * error)
+    return bool(one["mse"] - kept["mse"] <= 2 * np.hypot(one["stderr"], kept["stderr"]))
 
 
 def distilled_map_for(directory: str, key: jax.Array, trained: AmortisedMap, experiment: str, dim: int = 2,
                       observed: Sequence[int] = (0, 2), num_particles: int = 1000, num_steps: int | None = None,
-                      num_iterations: int | None = None, width: int = DISTILLED_WIDTH) -> AmortisedMap:
+                      num_iterations: int | None = None, width: int | None = None,
+                      teachers: Sequence[AmortisedMap] | None = None) -> AmortisedMap:
     """The student stored in ``directory`` if there is one (checked against the experiment),
-    else ``trained`` distilled into networks ``width`` wide (``distil_map``, ``num_iterations``
-    steps: its default when None) on a bank of its own (a) forecasts as large as the offline
-    stage's (``offline_options``; ``num_steps`` overrides the trajectories' length), a fifth held
-    out, and stored in ``directory``."""
+    else ``teachers`` (default ``[trained]``; several: the student fits their average) distilled
+    into networks ``width`` wide (default ``distilled_width``; ``distil_map``, ``num_iterations``
+    steps: its default when None) on a bank of ``trained``'s own (a) forecasts as large as the
+    offline stage's (``offline_options``; ``num_steps`` overrides the trajectories' length), a
+    fifth held out, and stored in ``directory``."""
     if os.path.exists(os.path.join(directory, "map.json")):
         return load_map(directory, model=map_name(experiment, dim, observed), state_dim=trained.config.state_dim)
     bank_key, distil_key = jax.random.split(key)
     training, validation = teacher_bank(bank_key, trained, experiment, dim, observed, num_particles, num_steps)
     options = {} if num_iterations is None else {"num_iterations": num_iterations, "chunks": 1}
-    student, _ = distil_map(distil_key, trained, experiment_model(experiment, dim, observed), training, validation,
-                            width=width, **options)
+    if width is None:
+        width = distilled_width(trained.config.state_dim, trained.config.width)
+    student, _ = distil_map(distil_key, [trained] if teachers is None else list(teachers),
+                            experiment_model(experiment, dim, observed), training, validation, width=width, **options)
     save_map(directory, student)
     return student
 

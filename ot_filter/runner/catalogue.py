@@ -202,17 +202,21 @@ def _amortised(options, experiment, method, num_particles, **model):
                                      model["dim"], num_particles=num_particles, num_steps=options["steps"],
                                      num_iterations=options["map_iterations"])
         return (), {method: local_amortised_updates(local_map, model["dim"])[method]}
-    from ot_filter.experiments.amortised import amortised_updates, distilled_map_for, map_for, map_name
+    from ot_filter.experiments.amortised import (amortised_updates, distilled_map_for, map_for, map_name,
+                                                 same_setting_candidates)
     from ot_filter.updates.amortised import amortised_ot
 
     directory = os.path.join(maps, map_name(experiment, **model))
     # Offline trajectories as long as the run's, with its particle count.
     trained, _ = map_for(directory, cell_key(options["seed"], 999_983), experiment, num_particles=num_particles,
                          num_steps=options["steps"], num_iterations=options["map_iterations"], **model)
-    if method == "amortised_distilled":  # the kept map fitted into narrower networks, stored beside it
+    if method == "amortised_distilled":
+        # The offline stage's trainings of the kept map's setting, their average fitted into one map
+        # (narrower where the state is small: distilled_width), stored beside the kept map.
         student = distilled_map_for(os.path.join(directory, "distilled"), cell_key(options["seed"], 999_961), trained,
                                     experiment, num_particles=num_particles, num_steps=options["steps"],
-                                    num_iterations=options["map_iterations"], **model)
+                                    num_iterations=options["map_iterations"],
+                                    teachers=same_setting_candidates(directory, trained), **model)
         return (), {method: amortised_ot(student)}
     return (), {method: amortised_updates(trained, experiment)[method]}
 
