@@ -703,6 +703,11 @@ def test_a_teacher_given_twice_distils_as_it_does_alone(contextual):
     for got, want in zip(jax.tree.leaves(twice.params), jax.tree.leaves(alone.params)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     assert [one["width"] for one in twice.info["distilled_from"]["teachers"]] == [8, 8]
+    # The second teacher is read: another one (the same networks on another context scaling) moves the student.
+    other, _ = distil_map(jax.random.key(5), [contextual, _rescaled(contextual, 0.7, 2.5)], model, training,
+                          validation, **options)
+    assert max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(other.params),
+                                                              jax.tree.leaves(alone.params))) > 1e-4
     assert alone.info["distilled_from"]["width"] == 8
 
 
@@ -735,15 +740,23 @@ def test_the_candidates_of_the_kept_maps_setting_are_the_distillations_teachers(
     again = _rescaled(contextual, 0.1, 1.5)
     save_map(tmp_path / "candidates" / "plain_second_training", again)
     save_map(tmp_path / "candidates" / "enkf_layer", contextual._replace(config=contextual.config._replace(enkf_layer=True)))
-    found = same_setting_candidates(str(tmp_path), contextual)
+    found = same_setting_candidates(str(tmp_path), contextual)  # no selection record: every one of the setting
     assert len(found) == 2 and all(one.config == contextual.config for one in found)
     np.testing.assert_allclose(found[1].context_scaling.mean, again.context_scaling.mean)
     assert distilled_width(2, 64) == distilled_width(3, 64) == 16 and distilled_width(10, 64) == 64
-    # A candidate the held-out selection found worse than the kept one is left out.
-    def selection(second):
-        scores = {"plain": {"mse": 1.0, "stderr": 0.1, "per_simulation": [0.9, 1.0, 1.1]},
-                  "plain_second_training": {"mse": float(np.mean(second)), "stderr": 0.1, "per_simulation": second}}
-        return contextual._replace(info=dict(contextual.info, selection={"chosen": "plain", "scores": scores}))
 
-    assert len(same_setting_candidates(str(tmp_path), selection([0.95, 1.1, 1.1]))) == 2
-    assert same_setting_candidates(str(tmp_path), worse := selection([1.9, 2.0, 2.1])) == [worse]
+    def kept(second, chosen="plain", scored=("plain", "plain_second_training")):
+        scores = {"plain": {"mse": 1.0, "stderr": 0.1, "per_simulation": [0.9, 1.0, 1.1]},
+                  "plain_second_training": {"mse": None if None in second else float(np.mean(second)),
+                                            "stderr": 0.1, "per_simulation": second}}
+        scores = {label: scores[label] for label in scored}
+        return contextual._replace(info=dict(contextual.info, selection={"chosen": chosen, "scores": scores}))
+
+    assert len(same_setting_candidates(str(tmp_path), kept([0.95, 1.1, 1.1]))) == 2
+    # The kept candidate first (its context scaling is the student's).
+    first = same_setting_candidates(str(tmp_path), kept([0.95, 1.1, 1.1], chosen="plain_second_training"))[0]
+    np.testing.assert_allclose(first.context_scaling.mean, again.context_scaling.mean)
+    # Left out: a candidate the held-out selection found worse, one it could not score (None: not
+    # finite) and one it did not score at all.
+    for record in (kept([1.9, 2.0, 2.1]), kept([0.9, None, 1.1]), kept([0.9, 1.0, 1.1], scored=("plain",))):
+        assert same_setting_candidates(str(tmp_path), record) == [record]

@@ -15,8 +15,8 @@ teacher's transported points (where the update's J check reads it). The student 
 Several teachers (trainings of one setting from different seeds) give one student of their
 average. Each training of the game ends somewhere in the oscillation around the saddle point, and
 the average of two such maps is closer to it than either: at n = 10 on the dynamic example the
-offline stage's two candidates distilled into one width-64 map filtered (a) with W1 0.287 where
-the kept candidate gave 0.324 (3 x 10 truths; ``docs/amortised.md``), at one map's cost a step.
+offline stage's two candidates distilled into one width-64 map filtered (a) with W1 0.281 where
+the kept candidate gave 0.335 (50 truths; ``docs/amortised.md``), at one map's cost a step.
 """
 
 from __future__ import annotations
@@ -123,8 +123,10 @@ def distil_map(key: Array, teacher: AmortisedMap | Sequence[AmortisedMap], model
 def _teachers(teacher) -> tuple[AmortisedMap, ...]:
     """``teacher`` as a non-empty tuple of maps of one model and one setting (widths aside)."""
     teachers = (teacher,) if isinstance(teacher, AmortisedMap) else tuple(teacher) if isinstance(teacher, (list, tuple)) else ()
-    if not teachers or not all(isinstance(one, AmortisedMap) for one in teachers):
-        raise TypeError(f"teacher must be an AmortisedMap or a non-empty sequence of them, got {type(teacher).__name__}")
+    wrong = [type(one).__name__ for one in teachers if not isinstance(one, AmortisedMap)]
+    if not teachers or wrong:
+        raise TypeError(f"teacher must be an AmortisedMap or a non-empty sequence of them, got "
+                        f"{type(teacher).__name__}{' of ' + ', '.join(wrong) if wrong else ''}")
     setting = teachers[0].config._replace(width=0)
     for index, one in enumerate(teachers[1:], start=1):
         if one.config._replace(width=0) != setting:

@@ -351,12 +351,15 @@ def same_setting_candidates(directory: str, trained: AmortisedMap) -> list[Amort
     held-out selection could not tell from it (``_as_good_as_kept``), or ``[trained]`` when there
     are not two such (a map stored without its candidates, or chosen among settings that differ).
     An average with a worse training is worse than the better one alone: on Lorenz-63 (x1 and x3)
-    a second training of the plain map filtered (a) with MSE 2.3-2.9, the stored map 0.88-0.90,
-    and their average 0.92-1.24 (6 filter keys; ``benchmarks/results/amortised_ot/distilled/``)."""
+    a second training of the plain map filtered (a) with MSE 2.3-2.9, the stored map 0.88-0.91,
+    and their average 0.92-1.24 (6 filter keys; ``benchmarks/results/amortised_ot/distilled/``).
+    The kept candidate comes first (the student takes its context scaling)."""
     root = os.path.join(directory, "candidates")
     selection = trained.info.get("selection") or {}
+    labels = sorted(os.listdir(root)) if os.path.isdir(root) else []
+    labels.sort(key=lambda label: label != selection.get("chosen"))  # stable: the kept one first
     found = []
-    for label in sorted(os.listdir(root)) if os.path.isdir(root) else ():
+    for label in labels:
         if os.path.exists(os.path.join(root, label, "map.json")) and _as_good_as_kept(selection, label):
             one = load_map(os.path.join(root, label), model=trained.config.model, state_dim=trained.config.state_dim)
             if one.config == trained.config:
@@ -367,16 +370,27 @@ def same_setting_candidates(directory: str, trained: AmortisedMap) -> list[Amort
 def _as_good_as_kept(selection: dict, label: str) -> bool:
     """Whether candidate ``label``'s held-out MSE (``select_map``'s, in the kept map's record) is
     within 2 standard errors of the kept candidate's (paired over the held-out truths where the
-    record has each one's per simulation). True where the record does not score it."""
-    scores = selection.get("scores", {})
-    if label not in scores or selection.get("chosen") not in scores:
+    record has each one's per simulation; a score the record could not write, None, counts as
+    infinite). Without a record every candidate counts; with one, a candidate it did not score
+    does not."""
+    scores = selection.get("scores")
+    if not scores or selection.get("chosen") not in scores:
         return True
+    if label not in scores:
+        return False
     one, kept = scores[label], scores[selection["chosen"]]
-    if "per_simulation" in one and "per_simulation" in kept:
-        difference = np.asarray(one["per_simulation"]) - np.asarray(kept["per_simulation"])
-        error = difference.std(ddof=1) / np.sqrt(difference.size) if difference.size > 1 else 0.0
-        return bool(difference.mean() <= 2 * error)
-    return bool(one["mse"] - kept["mse"] <= 2 * np.hypot(one["stderr"], kept["stderr"]))
+
+    def values(entry, name):
+        return np.array([np.inf if value is None else value for value in np.atleast_1d(entry.get(name))], float)
+
+    paired = one.get("per_simulation") is not None and kept.get("per_simulation") is not None
+    if paired and len(one["per_simulation"]) == len(kept["per_simulation"]) > 1:
+        difference = values(one, "per_simulation") - values(kept, "per_simulation")
+        if not np.all(np.isfinite(difference)):
+            return False
+        return bool(difference.mean() <= 2 * difference.std(ddof=1) / np.sqrt(difference.size))
+    (mse, error), (kept_mse, kept_error) = ((values(entry, "mse")[0], values(entry, "stderr")[0]) for entry in (one, kept))
+    return bool(np.isfinite(mse) and mse - kept_mse <= 2 * np.hypot(error, kept_error))
 
 
 def distilled_map_for(directory: str, key: jax.Array, trained: AmortisedMap, experiment: str, dim: int = 2,
@@ -389,15 +403,21 @@ def distilled_map_for(directory: str, key: jax.Array, trained: AmortisedMap, exp
     steps: its default when None) on a bank of ``trained``'s own (a) forecasts as large as the
     offline stage's (``offline_options``; ``num_steps`` overrides the trajectories' length), a
     fifth held out, and stored in ``directory``."""
+    teachers = [trained] if teachers is None else list(teachers)
+    if width is None:
+        width = distilled_width(trained.config.state_dim, trained.config.width)
     if os.path.exists(os.path.join(directory, "map.json")):
-        return load_map(directory, model=map_name(experiment, dim, observed), state_dim=trained.config.state_dim)
+        stored = load_map(directory, model=map_name(experiment, dim, observed), state_dim=trained.config.state_dim)
+        source = stored.info.get("distilled_from", {})
+        if stored.config.width != width or len(source.get("teachers", [source])) != len(teachers):
+            raise ValueError(f"the distilled map in {directory} has width {stored.config.width} and "
+                             f"{len(source.get('teachers', [source]))} teacher(s), not {width} and {len(teachers)} "
+                             "(an earlier version's choice): remove it to distil it again")
+        return stored
     bank_key, distil_key = jax.random.split(key)
     training, validation = teacher_bank(bank_key, trained, experiment, dim, observed, num_particles, num_steps)
     options = {} if num_iterations is None else {"num_iterations": num_iterations, "chunks": 1}
-    if width is None:
-        width = distilled_width(trained.config.state_dim, trained.config.width)
-    student, _ = distil_map(distil_key, [trained] if teachers is None else list(teachers),
-                            experiment_model(experiment, dim, observed), training, validation, width=width, **options)
+    student, _ = distil_map(distil_key, teachers, experiment_model(experiment, dim, observed), training, validation, width=width, **options)
     save_map(directory, student)
     return student
 
