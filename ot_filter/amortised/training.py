@@ -315,31 +315,41 @@ def _validate_one(key, params, bank, settings, model, structure, ensembles_per_b
 def train_amortised(key: Array, model: StateSpaceModel, *, model_name: str, num_simulations: int,
                     num_steps: int, num_particles: int, burn_in: int = 0, rounds: int = 2,
                     validation_fraction: float = 0.2, num_iterations: int = 20_000, first_update=None,
-                    **options: Any) -> tuple[AmortisedMap, list[TrainingHistory]]:
+                    average_rounds: str = "every", **options: Any) -> tuple[AmortisedMap, list[TrainingHistory]]:
     """Offline training in ``rounds``: the first on the forecasts of ``first_update``'s filter
     (default: the perturbed-observation EnKF), each later one, warm-started, on the forecasts of
     the amortised filter with the map so far (``num_iterations`` split evenly over the rounds).
     The last ``validation_fraction`` of the simulations are held out. ``options``: ``train_map``'s
-    network and optimiser settings. Returns the map and one history per round."""
+    network and optimiser settings; ``average_rounds``: ``train_amortised_seeds``'. Returns the
+    map and one history per round."""
     maps, histories = train_amortised_seeds(
         key[None], model, model_name=model_name, num_simulations=num_simulations, num_steps=num_steps,
         num_particles=num_particles, burn_in=burn_in, rounds=rounds, validation_fraction=validation_fraction,
-        num_iterations=num_iterations, first_update=first_update, **options)
+        num_iterations=num_iterations, first_update=first_update, average_rounds=average_rounds, **options)
     return maps[0], histories[0]
 
 
 def train_amortised_seeds(keys: Array, model: StateSpaceModel, *, model_name: str, num_simulations: int,
                           num_steps: int, num_particles: int, burn_in: int = 0, rounds: int = 2,
                           validation_fraction: float = 0.2, num_iterations: int = 20_000, first_update=None,
-                          **options: Any) -> tuple[list[AmortisedMap], list[list[TrainingHistory]]]:
+                          average_rounds: str = "every", **options: Any,
+                          ) -> tuple[list[AmortisedMap], list[list[TrainingHistory]]]:
     """``train_amortised`` for every key of ``keys`` ([S]) at once: seed s simulates its own
     trajectories (and, after the first round, its own map's forecasts); the training chunks of
     all seeds run as one ``vmap``-ped program (``train_maps``). Returns S maps and, per seed, one
-    history per round."""
+    history per round.
+
+    ``average_rounds`` (with ``train_maps``' ``average_chunks``): ``"every"`` round's map is the
+    average of its iterates, and the next round's forecasts are that map's; ``"last"``: only the
+    last round averages, so that the rounds before and the last iterate are the same as without
+    averaging (the point (b)'s warm-started iterations start from), and only the map without
+    online training (a) changes."""
     from ot_filter.updates.amortised import amortised_ot  # the update builder uses this module
     from ot_filter.updates.enkf import enkf
 
     rounds = check_int("rounds", rounds)
+    if average_rounds not in ("every", "last"):
+        raise ValueError(f"average_rounds must be 'every' or 'last', got {average_rounds!r}")
     if keys.ndim != 1:
         raise ValueError(f"keys must be a 1-D array of PRNG keys (one per seed), got shape {keys.shape}")
     num_seeds = keys.shape[0]
@@ -356,7 +366,8 @@ def train_amortised_seeds(keys: Array, model: StateSpaceModel, *, model_name: st
         trained, round_histories = train_maps(
             round_keys[:, 1], model, stack_banks([training for training, _ in splits]),
             stack_banks([validation for _, validation in splits]), model_name=model_name,
-            num_iterations=num_iterations // rounds, starts=trained, **options)
+            num_iterations=num_iterations // rounds, starts=trained,
+            **(options if average_rounds == "every" or index == rounds - 1 else dict(options, average_chunks=0)))
         histories.append(round_histories)
         updates = [amortised_ot(one) for one in trained]
     seconds = time.perf_counter() - started
