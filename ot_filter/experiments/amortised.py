@@ -149,7 +149,7 @@ def map_options(dim: int, experiment: str = "dynamic") -> dict:
     to the next of the last round between 0.27 and 0.40, as much as between trainings, and the
     round's average gave 0.22 and 0.28 (3 filter keys each) against 0.33 for the last iterates;
     averages of the last 10 and 5 chunks gave less (0.23-0.30), and of the last two rounds' 40
-    mixed results (0.20, 0.32). At n <= 4 and on Lorenz-63 the maps keep the last iterate:
+    mixed results (0.20, 0.32). At n <= 4 the maps keep the last iterate (so did Lorenz-63 before 0.2.11):
     one averaged stage per setting (``averaging_n2_lorenz63.json``) gave at n = 2 (a) 0.87 and
     (b) 0.94 of the online filter against 0.89 and 0.73, on Lorenz-63 (a) 1.22 and 0.92 against
     1.16 and 1.20 (x1 and x3; x1), (b) 1.17 and 1.05 against 1.12 and 1.05; with x1 and training
