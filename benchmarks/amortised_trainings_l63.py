@@ -35,7 +35,8 @@ from ot_filter.updates.amortised import amortised_ot  # noqa: E402
 
 
 def train(args, observed) -> None:
-    options = dict(offline_options("lorenz63", 3), **map_options(3, "lorenz63"), **json.loads(args.options))
+    # --options override the experiment's (a plain dict(**a, **b) refuses a key given twice)
+    options = {**offline_options("lorenz63", 3), **map_options(3, "lorenz63"), **json.loads(args.options)}
     print(options, flush=True)
     started = time.perf_counter()
     maps, histories = train_amortised_seeds(
