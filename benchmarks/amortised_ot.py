@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 from ot_filter.experiments._common import write_text_atomic  # noqa: E402
 from ot_filter.experiments.amortised import (  # noqa: E402
     WARM_OPTIONS, map_for, map_name, plot_validation, run_amortised_dynamic, run_amortised_lorenz63,
-    warm_options,
+    warm_map_for, warm_options,
 )
 
 METHODS = ("enkf", "sir", "ot", "amortised", "amortised_warm")
@@ -69,12 +69,14 @@ def _compare(experiment, key, simulations, out, run, metric, **model):
     """Trains (or loads) the experiment's map, runs every method on the same truths."""
     name = map_name(experiment, **model)
     started = time.perf_counter()
-    trained, _ = map_for(os.path.join(out, "maps", name), key, experiment, **model)
+    directory = os.path.join(out, "maps", name)
+    trained, _ = map_for(directory, key, experiment, **model)
     training_s = time.perf_counter() - started
-    summary = run(jax.random.key(2026), trained, num_simulations=simulations, **model)["metrics"]
+    warm = warm_map_for(directory, trained)  # (b)'s start (Lorenz-63: selected on its own)
+    summary = run(jax.random.key(2026), trained, num_simulations=simulations, warm=warm, **model)["metrics"]
     rows = {m: _row(summary, m, metric) for m in METHODS}
     record = _finish(rows, summary["num_steps"], simulations, trained, training_s)
-    record["warm_options"] = warm_options(trained, experiment)
+    record["warm_options"] = warm_options(warm, experiment)
     if metric == "w1":
         record.update(experiment=f"dynamic n = {model['dim']}",
                       metric="W1 to the exact marginals (mean over coordinates, t >= 1)",
@@ -129,8 +131,13 @@ def _selection_lines(info):
     selection = info["selection"]
     scores = "; ".join(f"{label} {score['mse']:.3f} ± {score['stderr']:.3f} ({score['fallback_steps']} fallbacks)"
                        for label, score in selection["scores"].items())
-    return [f"- Candidates, (a)'s MSE to held-out simulated truths: {scores}; kept: {selection['chosen']}. "
-            f"The offline stage (every candidate and the selection): {selection['offline_seconds']:.0f} s."]
+    lines = [f"- Candidates, (a)'s MSE to held-out simulated truths: {scores}; kept: {selection['chosen']}. "
+             f"The offline stage (every candidate and the selection): {selection['offline_seconds']:.0f} s."]
+    if "warm" in selection:  # (b)'s start selected on its own (WARM_SELECTED)
+        warm = "; ".join(f"{label} {score['mse']:.3f} ± {score['stderr']:.3f} ({score['fallback_steps']} fallbacks)"
+                         for label, score in selection["warm"]["scores"].items())
+        lines.append(f"- (b)'s MSE on the same truths: {warm}; (b) starts from: {selection['warm']['chosen']}.")
+    return lines
 
 
 def main():

@@ -22,6 +22,7 @@ from ot_filter.amortised import (
     load_map,
     map_recipe,
     save_map,
+    score_map,
     select_map,
     collect_forecasts,
     distil_map,
@@ -263,6 +264,32 @@ def test_the_selection_checks_its_candidates(contextual):
     json.dumps(record, allow_nan=False)
 
 
+def test_the_selection_scores_on_truths_of_the_truth_model(contextual):
+    # Truths from a model whose initial law is far from the filter's (like Lorenz-63's, which
+    # start at 25 against the filter's prior at 0); the filter keeps its own model. Recomputed
+    # truth by truth, unjitted.
+    model, key = scalar_model(), jax.random.key(8)
+    far = otf.models.linear_gaussian([[A]], [[Q]], [[1.0]], [[R]], [30.0], [[1.0]])
+    options = dict(num_simulations=3, num_steps=6, num_particles=50, skip_steps=1)
+    score = score_map(key, model, contextual, truth_model=far, **options)
+    truth_key, filter_key = jax.random.split(key)
+    errors = []
+    for truth, filter_ in zip(jax.random.split(truth_key, 3), jax.random.split(filter_key, 3)):
+        states, observations = otf.simulate(truth, far, 6)
+        result = otf.run_filter(filter_, model, otf.amortised_ot(contextual), observations, 50)
+        errors.append(np.mean((np.asarray(result.mean[1:]) - np.asarray(states[1:])) ** 2))
+    np.testing.assert_allclose(score.per_simulation, errors, rtol=1e-4)
+    # The default is the filter's own model (other truths, other errors).
+    own = score_map(key, model, contextual, **options).per_simulation
+    np.testing.assert_array_equal(own, score_map(key, model, contextual, truth_model=model, **options).per_simulation)
+    assert not np.allclose(own, errors, rtol=0.1)
+    chosen, scores = select_map(key, model, {"a": contextual}, truth_model=far, **options)
+    np.testing.assert_allclose(scores["a"].per_simulation, errors, rtol=1e-4)
+    planar = otf.models.linear_gaussian(np.eye(2), np.eye(2), np.eye(2), np.eye(2), np.zeros(2), np.eye(2))
+    with pytest.raises(ValueError, match=r"truth_model has \(state, observation\) dimensions \(2, 2\)"):
+        score_map(key, model, contextual, truth_model=planar, **options)
+
+
 def test_a_selection_where_no_filter_stays_finite_is_refused(contextual):
     # Truths that overflow (x_t = 1e30 x_{t-1}): every candidate's error is +inf, none is kept.
     exploding = otf.models.linear_gaussian([[1e30]], [[Q]], [[1.0]], [[R]], [0.0], [[1.0]])
@@ -308,6 +335,30 @@ def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256_and_averag
     # Lorenz-63: the last round averaged, its last iterate (b)'s start as without averaging
     assert map_options(3, "lorenz63") == dict(MAP_OPTIONS, average_chunks=20, average_rounds="last")
     assert "average_rounds" not in map_options(10)
+
+
+def test_the_offline_stage_selects_on_truths_like_the_experiment_s():
+    from ot_filter.experiments.amortised import experiment_model, selection_truths
+    from ot_filter.experiments.lorenz63 import lorenz63_models
+
+    # Lorenz-63: the experiment's truth model (no process noise, started at 25, not the filter's
+    # prior at 0), the settling time t <= 1.5 (150 steps of 0.01) left out of the score.
+    truth_model, skip = selection_truths("lorenz63", observed=(0,), num_steps=500)
+    assert skip == 150
+    assert jax.tree.structure(truth_model) == jax.tree.structure(lorenz63_models((0,))[0])
+    starts = jax.vmap(truth_model.sample_initial)(jax.random.split(jax.random.key(0), 400))
+    np.testing.assert_allclose(starts.mean(axis=0), 25.0, atol=4 * 10.0 / np.sqrt(400))
+    state = jnp.array([1.0, 2.0, 3.0])
+    truth_step = truth_model.sample_transition(jax.random.key(1), state)
+    np.testing.assert_array_equal(truth_step, truth_model.sample_transition(jax.random.key(2), state))
+    assert truth_model.observation_function(state).shape == (1,)
+    # runs too short to settle: the first tenth, as on the dynamic example
+    assert selection_truths("lorenz63", num_steps=100)[1] == 10
+    model, skip = selection_truths("dynamic", dim=3, num_steps=20)
+    assert skip == 2
+    assert jax.tree.structure(model) == jax.tree.structure(experiment_model("dynamic", 3))
+    np.testing.assert_array_equal(model.sample_initial(jax.random.key(3)),
+                                  experiment_model("dynamic", 3).sample_initial(jax.random.key(3)))
 
 
 def test_the_dynamic_example_s_bank_grows_with_the_dimension():
@@ -639,6 +690,45 @@ def test_candidates_trained_in_worker_processes_are_the_candidates_trained_in_tu
                         candidates={"plain": {}}, **small)
     for got, want in zip(jax.tree.leaves(folded.params), jax.tree.leaves(maps[False][1]["plain_second_training"].params)):
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.long  # two small Lorenz-63 trainings, each scored as (a) and as (b)
+def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
+    # Lorenz-63 (WARM_SELECTED): the stage keeps a candidate for (a) by (a)'s score and stores the
+    # candidate whose (b) scores best on the same held-out truths in directory/warm, (b)'s start.
+    from ot_filter.amortised import load_map
+    from ot_filter.experiments.amortised import (SELECTION_FOLD, amortised_updates, experiment_model, map_for,
+                                                 selection_truths, warm_map_for, warm_options)
+
+    small = dict(num_particles=40, num_iterations=60, num_simulations=3, num_steps=30)
+    candidates = {"plain": {}, "plain_second_training": {"training_fold": 1}}
+    directory = tmp_path / "lorenz63"
+    kept, _ = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,
+                      candidates=candidates, **small)
+    selection = kept.info["selection"]
+    warm = selection["warm"]
+    assert set(warm["scores"]) == set(candidates)
+    warm_mse = {label: np.inf if score["mse"] is None else score["mse"] for label, score in warm["scores"].items()}
+    assert warm["chosen"] == min(warm_mse, key=warm_mse.get)
+    # (b)'s score recomputed: the same truths as (a)'s, the filter amortised_ot(map, **warm_options)
+    model = experiment_model("lorenz63", observed=(0,))
+    truth_model, skip = selection_truths("lorenz63", observed=(0,), num_steps=30)
+    assert skip == 3  # 30 steps do not reach t = 1.5: the first tenth
+    chosen_map = load_map(directory / "candidates" / warm["chosen"])
+    again = score_map(jax.random.fold_in(jax.random.key(3), SELECTION_FOLD), model, chosen_map, num_simulations=3,
+                      num_steps=30, num_particles=40, skip_steps=skip, truth_model=truth_model,
+                      filter_options=warm_options(chosen_map, "lorenz63"))
+    np.testing.assert_allclose(again.mse, warm["scores"][warm["chosen"]]["mse"], rtol=1e-4)
+    assert again.mse != pytest.approx(selection["scores"][warm["chosen"]]["mse"], rel=1e-3)  # (b), not (a)
+    # warm_map_for: the stored start, the candidate's networks; (b) is built from it
+    start = warm_map_for(str(directory), kept)
+    for got, want in zip(jax.tree.leaves(start.params), jax.tree.leaves(chosen_map.params)):
+        np.testing.assert_array_equal(got, want)
+    assert start.info["warm_selection"]["chosen"] == warm["chosen"]
+    updates = amortised_updates(kept, "lorenz63", start)
+    assert set(updates) == {"amortised", "amortised_warm"}
+    # Without a stored start (the dynamic example; a stage before 0.2.12): the map kept for (a).
+    assert warm_map_for(str(tmp_path / "elsewhere"), kept) is kept
 
 
 def _distilled(trained_map, width, num_iterations):

@@ -10,12 +10,13 @@ validation loss. Maps are named by experiment (``map_name``) and refused by ``lo
 another one.
 
 Candidates: several maps are trained, and the one whose filter (a) tracks held-out simulated
-truths best is kept (``amortised.select_map``); the validation J cannot tell which (see
-``selection.py``). On Lorenz-63 (``CANDIDATES``) two trainings each of the map without and
+truths best is kept (``amortised.select_map``; truths like the experiment's,
+``selection_truths``); the validation J cannot tell which (see ``selection.py``). On Lorenz-63 (``CANDIDATES``) two trainings each of the map without and
 with the EnKF layer (each setting wins one observation setting); on the dynamic example
 (``DYNAMIC_CANDIDATES``) two trainings of the plain map, against the training's variance. The
 trainings of the kept setting are what ``amortised_distilled`` averages
-(``same_setting_candidates``).
+(``same_setting_candidates``). On Lorenz-63 (b)'s start is selected on its own, by (b)'s score on
+the same truths (``WARM_SELECTED``, ``warm_map_for``).
 """
 
 from __future__ import annotations
@@ -66,10 +67,9 @@ WARM_OPTIONS = {
     "lorenz63": {"num_iterations": (32, 8), "batch_size": 128, "inner_steps": 5},
 }
 # Offline candidates, each a full offline training (``offline_options``) with these options on top; the
-# map kept is the one whose filter (a) has the smallest MSE to held-out truths simulated from the
-# filter's model (the only model the offline stage knows: on Lorenz-63 the experiment's truths
-# are another), as many simulations and steps as the offline bank, the first tenth of the steps
-# skipped. Measured on Lorenz-63 (10 truths,
+# map kept is the one whose filter (a) has the smallest MSE to held-out truths like the
+# experiment's (``selection_truths``; from the filter's model before 0.2.12), as many simulations
+# and steps as the offline bank. Measured on Lorenz-63 (10 truths,
 # MSE after t = 1.5): x1 observed, plain 9.5, EnKF layer 1.68 (online OT 1.60); x1 and x3,
 # plain 0.97, layer 3.7 (online 0.73).
 # Two trainings of each (the second from fold_in(key, 1)) since 2026-12-06: one training's (a)
@@ -88,6 +88,15 @@ CANDIDATES = {"plain": {}, "plain_second_training": {"training_fold": 1},
 # against 2.03, (a) 0.461 against 0.338).
 DYNAMIC_CANDIDATES = {"plain": {}, "plain_second_training": {"training_fold": 1}}
 SELECTION_FOLD = 1_000  # the held-out truths' key: fold_in(key, SELECTION_FOLD)
+# Experiments whose offline stage also selects (b)'s start: the candidate whose (b) has the
+# smallest MSE on the same held-out truths, stored in ``directory/warm`` (``warm_map_for``). On
+# Lorenz-63 the start decides (b) as a training decides (a), and not in the same order: one stage
+# (x1 and x3, the table's truths, filter keys 0-2) kept the EnKF-layer map for (a) (1.18 of the
+# online filter; the plain map 1.19), whose (b) was 1.42 of the online filter against the plain
+# map's 1.14. Scoring (b) costs 60-120 s a candidate there. On the dynamic example (b) is within
+# its target from the map kept for (a) (0.73 and 0.91 of the online filter) and scoring it would
+# cost more than the training (n = 10: 150 truths of 20 steps at 1.9 s a step).
+WARM_SELECTED = ("lorenz63",)
 LABELS = {"amortised": "amortised OT (a): no training online",
           "amortised_warm": "amortised OT (b): a few iterations a step"}
 
@@ -212,6 +221,23 @@ def experiment_model(experiment: str, dim: int = 2, observed: Sequence[int] = (0
     raise ValueError(f"experiment must be 'dynamic' or 'lorenz63', got {experiment!r}")
 
 
+def selection_truths(experiment: str, dim: int = 2, observed: Sequence[int] = (0, 2),
+                     num_steps: int = 500) -> tuple:
+    """``(truth_model, skip_steps)``: the truths the offline stage selects its map on, and the
+    steps at their start its score leaves out. The experiment's own truths: on Lorenz-63 they
+    start from N(25, 100 I), away from the filter's prior N(0, 100 I), and a map selected on the
+    filter's model lost track on them (``selection.py``); its score skips the experiment's
+    settling time (t <= 1.5), as the experiment's MSE does. The dynamic example's truths are the
+    filter's model; its score skips the first tenth."""
+    if experiment == "lorenz63":
+        from ot_filter.experiments.lorenz63 import SETTLE_TIME, TIME_STEP, lorenz63_models
+
+        times = TIME_STEP * np.arange(1, num_steps + 1)
+        settled_from = int(np.searchsorted(times, SETTLE_TIME, side="right"))
+        return lorenz63_models(observed)[0], settled_from if settled_from < num_steps else num_steps // 10
+    return experiment_model(experiment, dim, observed), num_steps // 10
+
+
 def train_experiment_map(key: jax.Array, experiment: str, dim: int = 2, observed: Sequence[int] = (0, 2),
                          num_particles: int = 1000, **overrides) -> tuple[AmortisedMap, list[TrainingHistory]]:
     """Offline training of an experiment's map (``offline_options`` and ``map_options``, overridable)."""
@@ -229,9 +255,11 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     else ``CANDIDATES``; a candidate's ``training_fold`` k > 0: trained from ``fold_in(key, k)``; ``overrides`` apply to all of them
     and may not set what a candidate sets), each trained into ``directory/candidates/LABEL`` (or
     reloaded from there if trained with the same options: an interrupted offline stage resumes),
-    kept by ``select_map`` on held-out simulated truths of the filter's model and stored in
+    kept by ``select_map`` on held-out simulated truths like the experiment's
+    (``selection_truths``) and stored in
     ``directory`` with the scores and the whole offline cost in its ``info["selection"]``: a
-    later run reuses it. Histories: the kept candidate's rounds (None when it was reloaded).
+    later run reuses it. On ``WARM_SELECTED`` experiments the candidate whose (b) scores best on
+    the same truths is stored in ``directory/warm`` too (``warm_map_for``). Histories: the kept candidate's rounds (None when it was reloaded).
 
     ``workers``: train the candidates in worker processes, one core each, as many at once as
     there are cores (``processes``; their histories are then None, their curves in
@@ -256,9 +284,11 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
                 raise ValueError(f"candidates[{label!r}]['training_fold'] may not be {SELECTION_FOLD}: that key draws "
                                  "the held-out truths")
     offline = dict(offline_options(experiment, dim), **overrides)
+    truth_model, skip_steps = selection_truths(experiment, dim, observed, offline["num_steps"])
+    selection_key = jax.random.fold_in(key, SELECTION_FOLD)
     scoring = dict(num_simulations=check_int("num_simulations", offline["num_simulations"], minimum=2),
-                   num_steps=offline["num_steps"], num_particles=num_particles,
-                   skip_steps=offline["num_steps"] // 10)
+                   num_steps=offline["num_steps"], num_particles=num_particles, skip_steps=skip_steps,
+                   truth_model=truth_model)
     started = time.perf_counter()
     pending = [label for label in candidates
                if not os.path.exists(os.path.join(directory, "candidates", label, "map.json"))]
@@ -274,11 +304,19 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     for label, options in candidates.items():
         trained[label], histories[label] = _candidate(os.path.join(directory, "candidates", label), key, experiment,
                                                       dim, observed, num_particles, dict(overrides, **options))
-    chosen, scores = select_map(jax.random.fold_in(key, SELECTION_FOLD), model, trained, **scoring)
-    selection = {"chosen": chosen, "scores": {label: score.record() for label, score in scores.items()},
-                 "offline_seconds": sum(one.info["seconds"] for one in trained.values())
-                 + sum(score.seconds for score in scores.values()),
-                 "offline_wall_seconds": time.perf_counter() - started}
+    chosen, scores = select_map(selection_key, model, trained, **scoring)
+    selection = {"chosen": chosen, "scores": {label: score.record() for label, score in scores.items()}}
+    offline_seconds = sum(one.info["seconds"] for one in trained.values()) + sum(score.seconds for score in scores.values())
+    if experiment in WARM_SELECTED:  # (b)'s start, on the same truths
+        warm_chosen, warm_scores = select_map(selection_key, model, trained, **scoring,
+                                              filter_options=lambda one: warm_options(one, experiment))
+        selection["warm"] = {"chosen": warm_chosen,
+                             "scores": {label: score.record() for label, score in warm_scores.items()}}
+        offline_seconds += sum(score.seconds for score in warm_scores.values())
+        # stored before the kept map: a directory with map.json has its (b) start too
+        save_map(os.path.join(directory, "warm"), trained[warm_chosen]._replace(
+            info=dict(trained[warm_chosen].info, warm_selection=selection["warm"])))
+    selection.update(offline_seconds=offline_seconds, offline_wall_seconds=time.perf_counter() - started)
     kept = trained[chosen]._replace(info=dict(trained[chosen].info, selection=selection))
     save_map(directory, kept)
     history, stored = (os.path.join(directory, "candidates", chosen, "history.npz"),
@@ -288,6 +326,15 @@ def map_for(directory: str, key: jax.Array, experiment: str, dim: int = 2, obser
     elif os.path.exists(stored):  # an earlier map's curves
         os.remove(stored)
     return kept, histories[chosen]
+
+
+def warm_map_for(directory: str, trained: AmortisedMap) -> AmortisedMap:
+    """The map (b) starts from: the candidate the offline stage in ``directory`` kept for (b)
+    (``WARM_SELECTED`` experiments, ``directory/warm``), else ``trained``, the map kept for (a)."""
+    where = os.path.join(directory, "warm")
+    if not os.path.exists(os.path.join(where, "map.json")):
+        return trained
+    return load_map(where, model=trained.config.model, state_dim=trained.config.state_dim)
 
 
 def _train_in_workers(jobs: dict, key: jax.Array, experiment: str, dim: int, observed: Sequence[int],
@@ -459,29 +506,34 @@ def teacher_bank(key: jax.Array, trained: AmortisedMap, experiment: str, dim: in
     return split_bank(bank, 0.2)
 
 
-def amortised_updates(trained: AmortisedMap, experiment: str) -> dict:
-    """``{"amortised": (a), "amortised_warm": (b)}`` (b with ``warm_options``)."""
-    return {"amortised": amortised_ot(trained), "amortised_warm": amortised_ot(trained, **warm_options(trained, experiment))}
+def amortised_updates(trained: AmortisedMap, experiment: str, warm: AmortisedMap | None = None) -> dict:
+    """``{"amortised": (a), "amortised_warm": (b)}``: (a) with ``trained``, (b) from ``warm``
+    (default ``trained``; ``warm_map_for``) with ``warm_options``."""
+    warm = trained if warm is None else warm
+    return {"amortised": amortised_ot(trained), "amortised_warm": amortised_ot(warm, **warm_options(warm, experiment))}
 
 
 def run_amortised_dynamic(key: jax.Array, trained: AmortisedMap, dim: int, num_particles: int = 1000,
-                          num_steps: int = 20, num_simulations: int = 10, methods=("enkf", "sir", "ot")) -> dict:
-    """The dynamic example's comparison (exact W1 per coordinate, ``run_dynamic_example``)."""
+                          num_steps: int = 20, num_simulations: int = 10, methods=("enkf", "sir", "ot"),
+                          warm: AmortisedMap | None = None) -> dict:
+    """The dynamic example's comparison (exact W1 per coordinate, ``run_dynamic_example``); (b)
+    from ``warm`` (default ``trained``)."""
     from ot_filter.experiments.dynamic_example import run_dynamic_example
 
     return run_dynamic_example(key, dim=dim, num_particles=num_particles, num_steps=num_steps,
                                num_simulations=num_simulations, methods=methods,
-                               extra_updates=amortised_updates(trained, "dynamic"))
+                               extra_updates=amortised_updates(trained, "dynamic", warm))
 
 
 def run_amortised_lorenz63(key: jax.Array, trained: AmortisedMap, observed: Sequence[int] = (0, 2),
                            num_particles: int = 1000, num_steps: int = 500, num_simulations: int = 10,
-                           methods=("enkf", "sir", "ot")) -> dict:
-    """Lorenz-63's comparison (MSE of the mean to the truth, ``run_lorenz63``)."""
+                           methods=("enkf", "sir", "ot"), warm: AmortisedMap | None = None) -> dict:
+    """Lorenz-63's comparison (MSE of the mean to the truth, ``run_lorenz63``); (b) from ``warm``
+    (default ``trained``)."""
     from ot_filter.experiments.lorenz63 import run_lorenz63
 
     return run_lorenz63(key, num_particles=num_particles, num_steps=num_steps, num_simulations=num_simulations,
-                        methods=methods, observed=observed, extra_updates=amortised_updates(trained, "lorenz63"))
+                        methods=methods, observed=observed, extra_updates=amortised_updates(trained, "lorenz63", warm))
 
 
 def plot_validation(curves: dict, out_dir: str, name: str = "amortised_validation.png", title: str | None = None) -> str:

@@ -203,7 +203,7 @@ def _amortised(options, experiment, method, num_particles, **model):
                                      num_iterations=options["map_iterations"])
         return (), {method: local_amortised_updates(local_map, model["dim"])[method]}
     from ot_filter.experiments.amortised import (amortised_updates, distilled_map_for, map_for, map_name,
-                                                 same_setting_candidates)
+                                                 same_setting_candidates, warm_map_for)
     from ot_filter.updates.amortised import amortised_ot
 
     directory = os.path.join(maps, map_name(experiment, **model))
@@ -218,7 +218,8 @@ def _amortised(options, experiment, method, num_particles, **model):
                                     num_iterations=options["map_iterations"],
                                     teachers=same_setting_candidates(directory, trained), **model)
         return (), {method: amortised_ot(student)}
-    return (), {method: amortised_updates(trained, experiment)[method]}
+    # (b) from the candidate the stage kept for it (Lorenz-63), else from the map kept for (a)
+    return (), {method: amortised_updates(trained, experiment, warm_map_for(directory, trained))[method]}
 
 
 def _dynamic_cell(options, cell, progress):
