@@ -692,7 +692,7 @@ def test_candidates_trained_in_worker_processes_are_the_candidates_trained_in_tu
         np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.long  # two small Lorenz-63 trainings, each scored as (a) and as (b)
+@pytest.mark.long  # three small Lorenz-63 trainings, scored as (a), two of them as (b)
 def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
     # Lorenz-63 (WARM_SELECTED): the stage keeps a candidate for (a) by (a)'s score and stores the
     # candidate whose (b) scores best on the same held-out truths in directory/warm, (b)'s start.
@@ -701,13 +701,14 @@ def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
                                                  selection_truths, warm_map_for, warm_options)
 
     small = dict(num_particles=40, num_iterations=60, num_simulations=3, num_steps=30)
-    candidates = {"plain": {}, "plain_second_training": {"training_fold": 1}}
+    # (b) may start from the plain maps only (WARM_SELECTED): the layer map is not scored for (b)
+    candidates = {"plain": {}, "plain_second_training": {"training_fold": 1}, "enkf_layer": {"enkf_layer": True}}
     directory = tmp_path / "lorenz63"
     kept, _ = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,
                       candidates=candidates, **small)
     selection = kept.info["selection"]
     warm = selection["warm"]
-    assert set(warm["scores"]) == set(candidates)
+    assert set(warm["scores"]) == {"plain", "plain_second_training"} and set(selection["scores"]) == set(candidates)
     warm_mse = {label: np.inf if score["mse"] is None else score["mse"] for label, score in warm["scores"].items()}
     assert warm["chosen"] == min(warm_mse, key=warm_mse.get)
     # (b)'s score recomputed: the same truths as (a)'s, the filter amortised_ot(map, **warm_options)
