@@ -217,6 +217,18 @@ def test_a_map_used_as_is_that_does_not_condition_falls_back_to_the_enkf(trained
             np.testing.assert_allclose(posterior, particles, rtol=1e-5, atol=1e-5)
 
 
+def _errors_truth_by_truth(key, truth_model, model, trained_map, num_simulations, num_steps, num_particles, skip):
+    """``score_map``'s per-truth errors, unjitted: each truth of ``truth_model`` filtered with
+    ``model`` and the map's (a), the squared error of the mean after ``skip`` steps."""
+    truth_key, filter_key = jax.random.split(key)
+    errors = []
+    for truth, filter_ in zip(jax.random.split(truth_key, num_simulations), jax.random.split(filter_key, num_simulations)):
+        states, observations = otf.simulate(truth, truth_model, num_steps)
+        result = otf.run_filter(filter_, model, otf.amortised_ot(trained_map), observations, num_particles)
+        errors.append(np.mean((np.asarray(result.mean[skip:]) - np.asarray(states[skip:])) ** 2))
+    return errors
+
+
 @pytest.mark.long
 def test_the_selection_keeps_the_map_whose_filter_tracks_simulated_truths(trained):
     # Both candidates filter the same 8 simulated truths (one compiled, vmapped program per map);
@@ -228,12 +240,7 @@ def test_the_selection_keeps_the_map_whose_filter_tracks_simulated_truths(traine
     chosen, scores = select_map(key, model, {"untrained": untrained, "trained": trained_map}, num_simulations=8,
                                 num_steps=30, num_particles=200, skip_steps=5)
     assert chosen == "trained" and set(scores) == {"untrained", "trained"}
-    truth_key, filter_key = jax.random.split(key)
-    errors = []
-    for truth, filter_ in zip(jax.random.split(truth_key, 8), jax.random.split(filter_key, 8)):
-        states, observations = otf.simulate(truth, model, 30)
-        result = otf.run_filter(filter_, model, otf.amortised_ot(trained_map), observations, 200)
-        errors.append(np.mean((np.asarray(result.mean[5:]) - np.asarray(states[5:])) ** 2))
+    errors = _errors_truth_by_truth(key, model, model, trained_map, 8, 30, 200, 5)
     np.testing.assert_allclose(scores["trained"].per_simulation, errors, rtol=1e-4)
     np.testing.assert_allclose(scores["trained"].mse, np.mean(errors), rtol=1e-4)
     assert scores["trained"].stderr == pytest.approx(np.std(errors, ddof=1) / np.sqrt(8), rel=1e-3)
@@ -272,12 +279,7 @@ def test_the_selection_scores_on_truths_of_the_truth_model(contextual):
     far = otf.models.linear_gaussian([[A]], [[Q]], [[1.0]], [[R]], [30.0], [[1.0]])
     options = dict(num_simulations=3, num_steps=6, num_particles=50, skip_steps=1)
     score = score_map(key, model, contextual, truth_model=far, **options)
-    truth_key, filter_key = jax.random.split(key)
-    errors = []
-    for truth, filter_ in zip(jax.random.split(truth_key, 3), jax.random.split(filter_key, 3)):
-        states, observations = otf.simulate(truth, far, 6)
-        result = otf.run_filter(filter_, model, otf.amortised_ot(contextual), observations, 50)
-        errors.append(np.mean((np.asarray(result.mean[1:]) - np.asarray(states[1:])) ** 2))
+    errors = _errors_truth_by_truth(key, far, model, contextual, 3, 6, 50, 1)
     np.testing.assert_allclose(score.per_simulation, errors, rtol=1e-4)
     # The default is the filter's own model (other truths, other errors).
     own = score_map(key, model, contextual, **options).per_simulation
