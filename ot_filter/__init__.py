@@ -55,7 +55,8 @@ __version__ = "0.2.12"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       0.2.11: Lorenz-63's offline stage trains each candidate setting twice and averages the
 #                       last round's iterates (the last iterate, (b)'s start, unchanged)
 #                       0.2.12: the offline stage selects its map on truths like the experiment's
-#                       (Lorenz-63's start away from the filter's prior; its score skips t <= 1.5)
+#                       (Lorenz-63's start away from the filter's prior; its score skips t <= 1.5), and on
+#                       Lorenz-63 (b)'s start, a plain map, by (b)'s own score (MAP/warm)
 
 __all__ = [
     "BayesUpdate",

@@ -85,7 +85,8 @@ def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_
     if check_int("skip_steps", skip_steps, minimum=0) >= num_steps:
         raise ValueError(f"skip_steps must be in [0, num_steps = {num_steps}), got {skip_steps}")
     started = time.perf_counter()
-    errors, diverged = _squared_errors(key, truth_model, model, amortised_ot(trained, **(filter_options or {})), num_simulations, num_steps, num_particles)
+    update = amortised_ot(trained, **(filter_options or {}))
+    errors, diverged = _squared_errors(key, truth_model, model, update, num_simulations, num_steps, num_particles)
     errors, diverged = np.asarray(errors, float), np.asarray(diverged)
     per_simulation = errors[:, skip_steps:].mean(axis=1)
     per_simulation = np.where(np.isfinite(per_simulation), per_simulation, np.inf)

@@ -97,8 +97,8 @@ SELECTION_FOLD = 1_000  # the held-out truths' key: fold_in(key, SELECTION_FOLD)
 # map falls back (its online training diverges) 1-51 steps on 10 held-out truths (six maps of
 # three stages), from a plain map 0-1: a layer start that scored best on the held-out truths
 # (0.666 against 0.710, 19 fallbacks against 0) gave 1.21 and 0.77 on two filter keys of the
-# table's truths (the online filter 0.70). So (b) starts from a plain map (measured from three:
-# 1.06-1.14 of the online filter). Scoring (b) costs 60-120 s a candidate. On the dynamic example
+# table's truths (the online filter 0.70). So (b) starts from a plain map (six plain starts
+# measured: 1.03-1.14 of the online filter). Scoring (b) costs 60-120 s a candidate. On the dynamic example
 # (b) is within its target from the map kept for (a) (0.73 and 0.91 of the online filter) and
 # scoring it would cost more than the training (n = 10: 150 truths of 20 steps at 1.9 s a step).
 WARM_SELECTED = {"lorenz63": {"enkf_layer": False}}
