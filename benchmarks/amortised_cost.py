@@ -40,6 +40,8 @@ CASES = [
     ("dynamic n = 10", ("dynamic", dict(dim=10)), 20, {"(a), width 64 (the table's map)": "maps/dynamic-n10"}),
     ("Lorenz-63, observed 1,3", ("lorenz63", dict(observed=(0, 2))), 100,
      {"(a) (the table's map)": "maps/lorenz63-obs0,2"}),
+    ("Lorenz-63, observed 1", ("lorenz63", dict(observed=(0,))), 100,
+     {"(a) (the table's map)": "maps/lorenz63-obs0"}),
 ]
 
 

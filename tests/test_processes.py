@@ -18,6 +18,15 @@ def test_jobs_run_in_worker_processes_and_return_their_values():
     assert values["b"]["y"] == "text"
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="the OS cannot pin processes")
+def test_each_worker_is_pinned_to_one_of_the_caller_s_cores_from_the_last():
+    assert [processes.core_for(index, [0, 1, 2]) for index in range(5)] == [2, 1, 0, 2, 1]
+    cores = sorted(os.sched_getaffinity(0))
+    values = processes.run({f"w{index}": ("ot_filter.experiments.processes:_cores", {}) for index in range(3)})
+    assert [values[f"w{index}"] for index in range(3)] == [[cores[-1 - index % len(cores)]] for index in range(3)]
+    assert sorted(os.sched_getaffinity(0)) == cores  # the caller is not pinned
+
+
 def test_a_failing_worker_raises_with_its_output_and_stops_the_others():
     started = time.perf_counter()
     with pytest.raises(RuntimeError, match="(?s)bad: .*no attribute 'no_such_function'"):
