@@ -323,6 +323,27 @@ def test_overrides_may_not_set_what_the_candidates_differ_by(tmp_path):
         map_for(str(tmp_path / "widened"), jax.random.key(0), "dynamic", candidates={"plain": {}}, width=16)
 
 
+def test_a_gate_s_further_trainings_are_each_setting_from_its_next_unused_fold(tmp_path):
+    from ot_filter.experiments.amortised import CANDIDATES, SELECTION_FOLD, further_trainings, map_for
+
+    first = further_trainings(CANDIDATES)
+    assert first == {"plain_training_2": {"training_fold": 2},
+                     "enkf_layer_training_2": {"enkf_layer": True, "training_fold": 2}}
+    assert further_trainings({**CANDIDATES, **first}) == {
+        "plain_training_3": {"training_fold": 3}, "enkf_layer_training_3": {"enkf_layer": True, "training_fold": 3}}
+    # a setting's folds need not be consecutive; the held-out truths' fold is skipped
+    assert further_trainings({"wide": {"width": 8, "training_fold": SELECTION_FOLD - 1}, "narrow": {"width": 4}}) == {
+        "wide_training_1001": {"width": 8, "training_fold": SELECTION_FOLD + 1},
+        "narrow_training_1": {"width": 4, "training_fold": 1}}
+    for gate, message in ((0, "gate must be a ratio > 0"), (True, "gate must be a ratio > 0"),
+                          ("1.25", "gate must be a ratio > 0")):
+        with pytest.raises(ValueError, match=message):
+            map_for(str(tmp_path / "map"), jax.random.key(0), "lorenz63", gate=gate)
+    with pytest.raises(ValueError, match="extra_waves must be an int >= 0"):
+        map_for(str(tmp_path / "map"), jax.random.key(0), "lorenz63", extra_waves=-1)
+    assert not (tmp_path / "map").exists()  # refused before anything was trained
+
+
 def test_the_map_s_batch_is_half_the_online_update_s_and_at_least_256_and_averaged_above_n_4():
     from ot_filter.experiments.amortised import MAP_OPTIONS, map_options
     from ot_filter.updates.ot import default_sizes
@@ -707,7 +728,8 @@ def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
     candidates = {"plain": {}, "plain_second_training": {"training_fold": 1}, "enkf_layer": {"enkf_layer": True}}
     directory = tmp_path / "lorenz63"
     kept, _ = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,
-                      candidates=candidates, **small)
+                      candidates=candidates, gate=False, **small)  # the gate's own test is below
+    assert "gate" not in kept.info["selection"]
     selection = kept.info["selection"]
     warm = selection["warm"]
     assert set(warm["scores"]) == {"plain", "plain_second_training"} and set(selection["scores"]) == set(candidates)
@@ -732,6 +754,54 @@ def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
     assert set(updates) == {"amortised", "amortised_warm"}
     # Without a stored start (the dynamic example; a stage before 0.2.12): the map kept for (a).
     assert warm_map_for(str(tmp_path / "elsewhere"), kept) is kept
+
+
+@pytest.mark.long  # two small Lorenz-63 trainings and the online OT filter on the held-out truths, twice
+def test_a_stage_whose_kept_map_misses_the_gate_trains_further_candidates_and_reselects(tmp_path):
+    # The gate holds the kept map's (a) to a multiple of the online OT filter's MSE on the same
+    # held-out truths. A gate no small map can pass (1e-3) trains one further wave (the plain
+    # setting from fold 1), scores it on the same truths, keeps the best of both and warns; the
+    # same candidates under a gate they pass are reloaded, and nothing is added.
+    from ot_filter.amortised import load_map, score_filter
+    from ot_filter.experiments.amortised import (SELECTION_FOLD, experiment_model, map_for, online_update,
+                                                 selection_truths)
+
+    small = dict(num_particles=40, num_iterations=60, num_simulations=3, num_steps=30)
+    directory = tmp_path / "gated"
+    with pytest.warns(UserWarning, match=r"after 2 further trainings \(gate 0.001\)"):
+        kept, _ = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,
+                          candidates={"plain": {}}, gate=1e-3, extra_waves=2, selection_simulations=4, **small)
+    selection = kept.info["selection"]
+    gate = selection["gate"]
+    assert gate["added"] == {"plain_training_1": {"training_fold": 1}, "plain_training_2": {"training_fold": 2}}
+    assert set(selection["scores"]) == {"plain", "plain_training_1", "plain_training_2"}
+    assert json.loads((directory / "candidates" / "plain_training_2" / "options.json").read_text())["training_fold"] == 2
+    mse = {label: score["mse"] for label, score in selection["scores"].items()}
+    assert selection["chosen"] == min(mse, key=mse.get)
+    for got, want in zip(jax.tree.leaves(kept.params),
+                         jax.tree.leaves(load_map(directory / "candidates" / selection["chosen"]).params)):
+        np.testing.assert_array_equal(got, want)
+    # the online filter's score recomputed: the held-out truths, the experiment's online OT update
+    truth_model, skip = selection_truths("lorenz63", observed=(0,), num_steps=30)
+    online = score_filter(jax.random.fold_in(jax.random.key(3), SELECTION_FOLD), experiment_model("lorenz63", observed=(0,)),
+                          online_update("lorenz63"), num_simulations=4, num_steps=30, num_particles=40,
+                          skip_steps=skip, truth_model=truth_model)
+    np.testing.assert_allclose(gate["online"]["mse"], online.mse, rtol=1e-4)
+    assert not gate["passed"] and gate["a_vs_online"] == pytest.approx(mse[selection["chosen"]] / online.mse, rel=1e-4)
+    # (a) and the online filter on the 4 selection truths, (b)'s start among all three on the bank's 3
+    assert {len(score["per_simulation"]) for score in selection["scores"].values()} == {4}
+    assert len(gate["online"]["per_simulation"]) == 4
+    warm = selection["warm"]
+    assert set(warm["scores"]) == set(mse)
+    assert {len(score["per_simulation"]) for score in warm["scores"].values()} == {3}
+    # A gate the candidates pass: the stored candidates are reloaded, none is added.
+    (directory / "map.json").unlink()
+    again, histories = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,
+                               candidates={"plain": {}}, gate=1e6, selection_simulations=4, **small)
+    assert histories is None  # reloaded, not trained
+    assert again.info["selection"]["gate"]["added"] == {} and again.info["selection"]["gate"]["passed"]
+    assert set(again.info["selection"]["scores"]) == {"plain"}
+    np.testing.assert_allclose(again.info["selection"]["gate"]["online"]["mse"], online.mse, rtol=1e-4)
 
 
 def _distilled(trained_map, width, num_iterations):

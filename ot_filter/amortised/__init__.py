@@ -18,7 +18,7 @@ from ot_filter.amortised.local import (
     train_local_amortised,
     train_local_map,
 )
-from ot_filter.amortised.selection import MapScore, score_map, select_map
+from ot_filter.amortised.selection import MapScore, score_filter, score_map, select_map
 from ot_filter.amortised.storage import MapMismatchError, load_local_map, load_map, save_local_map, save_map
 from ot_filter.amortised.training import (
     AmortisedMap,
@@ -56,6 +56,7 @@ __all__ = [
     "map_recipe",
     "save_local_map",
     "save_map",
+    "score_filter",
     "score_map",
     "select_map",
     "split_bank",

@@ -19,6 +19,9 @@ online filter's 1.5).
 The filter scored may be another than (a) (``filter_options``): the start that is best for (a)
 need not be for (b), which trains a few iterations a step from it (Lorenz-63, x1 and x3: the map
 kept for (a) gave (b) 1.42 of the online filter, another candidate 1.06).
+
+``score_filter`` scores any update on the same truths: the online OT filter there is the yardstick
+an offline stage holds its kept map to (``experiments.amortised.map_for``'s gate).
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from ot_filter.model import StateSpaceModel, model_dimensions, simulate
 
 Array = jax.Array
 
-__all__ = ["MapScore", "score_map", "select_map"]
+__all__ = ["MapScore", "score_filter", "score_map", "select_map"]
 
 
 class MapScore(NamedTuple):
@@ -61,12 +64,8 @@ class MapScore(NamedTuple):
 def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_simulations: int, num_steps: int,
               num_particles: int, skip_steps: int = 0, truth_model: StateSpaceModel | None = None,
               filter_options: dict | None = None) -> MapScore:
-    """The filter ``amortised_ot(trained, **filter_options)`` (default: (a), no training online)
-    with the filter's ``model`` on ``num_simulations`` truths of
-    ``num_steps`` simulated from ``key`` with ``truth_model`` (default ``model``; the same truths
-    for every map scored with the same key): squared error of the filtering mean to the truth,
-    averaged over coordinates and over the steps after the first ``skip_steps``, then over the
-    truths. A truth whose filter is not finite scores +inf."""
+    """``score_filter`` of the filter ``amortised_ot(trained, **filter_options)`` (default: (a),
+    no training online): the same truths for every map scored with the same key."""
     from ot_filter.updates.amortised import amortised_ot  # the update builder imports this package
 
     dimensions = model_dimensions(model)
@@ -74,6 +73,20 @@ def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_
         raise ValueError(f"model has (state, observation) dimensions {dimensions}, the map "
                          f"{trained.config.model!r} was trained for "
                          f"{(trained.config.state_dim, trained.config.observation_dim)}")
+    return score_filter(key, model, amortised_ot(trained, **(filter_options or {})), num_simulations=num_simulations,
+                        num_steps=num_steps, num_particles=num_particles, skip_steps=skip_steps,
+                        truth_model=truth_model)
+
+
+def score_filter(key: Array, model: StateSpaceModel, update, *, num_simulations: int, num_steps: int,
+                 num_particles: int, skip_steps: int = 0, truth_model: StateSpaceModel | None = None) -> MapScore:
+    """The filter with ``update`` (any Bayes update whose ``info`` reports ``diverged``: the
+    amortised and the online OT updates) and the filter's ``model`` on ``num_simulations``
+    truths of ``num_steps`` simulated from ``key`` with ``truth_model`` (default ``model``; the
+    same truths for every filter scored with the same key): squared error of the filtering mean
+    to the truth, averaged over coordinates and over the steps after the first ``skip_steps``,
+    then over the truths. A truth whose filter is not finite scores +inf."""
+    dimensions = model_dimensions(model)
     if truth_model is None:
         truth_model = model
     elif model_dimensions(truth_model) != dimensions:
@@ -85,7 +98,6 @@ def score_map(key: Array, model: StateSpaceModel, trained: AmortisedMap, *, num_
     if check_int("skip_steps", skip_steps, minimum=0) >= num_steps:
         raise ValueError(f"skip_steps must be in [0, num_steps = {num_steps}), got {skip_steps}")
     started = time.perf_counter()
-    update = amortised_ot(trained, **(filter_options or {}))
     errors, diverged = _squared_errors(key, truth_model, model, update, num_simulations, num_steps, num_particles)
     errors, diverged = np.asarray(errors, float), np.asarray(diverged)
     per_simulation = errors[:, skip_steps:].mean(axis=1)
