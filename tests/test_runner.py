@@ -95,6 +95,8 @@ def test_interrupted_sweep_resumes_and_reproduces_the_uninterrupted_metrics(tmp_
         (["run", "dynamic", "--methods", "enkf,magic"], "unknown method(s) magic for dynamic"),
         (["run", "dynamic", "--dim", "2,4"], "--dim takes one value for dynamic"),
         (["run", "static", "--noise", "0.4,-1"], "--noise values must be > 0"),
+        (["run", "lorenz63", "--map-gate", "-1"], "--map-gate must be a ratio > 0, or 0 for none"),
+        (["run", "static", "--map-gate", "1.25"], "--map-gate does not apply to static"),
         (["run", "dynamic", "--out", "/proc/forbidden"], "cannot write to output directory"),
         (["frobnicate"], "invalid choice: 'frobnicate'"),
     ],
@@ -115,6 +117,27 @@ def test_a_directory_holding_another_run_is_refused(tmp_path):
     other = resolve_options("dynamic", {"particles": 60}, quick=True)
     with pytest.raises(RunError, match="holds a different run"):
         RunDirectory.open(str(tmp_path), _config(other, True, []), ("experiment", "options"))
+
+
+def test_the_runner_gives_the_offline_stage_its_map_gate(tmp_path, monkeypatch):
+    # --map-gate reaches map_for's gate: by default the experiment's (None), none with --quick
+    # (maps of 3,000 iterations would miss it and train every wave) or with 0.
+    import ot_filter.experiments.amortised as amortised
+    from ot_filter.runner.catalogue import _amortised
+
+    class Reached(Exception):
+        pass
+
+    def offline_stage(directory, key, experiment, **options):
+        raise Reached(options["gate"])
+
+    monkeypatch.setattr(amortised, "map_for", offline_stage)
+    for quick, overrides, gate in ((False, {}, None), (True, {}, False), (True, {"map_gate": 1.5}, 1.5),
+                                   (False, {"map_gate": 0.0}, False)):
+        options = dict(resolve_options("lorenz63", overrides, quick=quick), run_dir=str(tmp_path))
+        with pytest.raises(Reached) as reached:
+            _amortised(options, "lorenz63", "amortised", 40, observed=(0, 2))
+        assert reached.value.args[0] is gate if gate is None or gate is False else reached.value.args[0] == gate
 
 
 def test_list_names_every_experiment():

@@ -54,8 +54,8 @@ def resolve_options(name: str, overrides: dict | None = None, quick: bool = Fals
             continue
         if key not in experiment.defaults:
             raise RunError(
-                f"--{key} does not apply to {name}; its options: "
-                f"{', '.join('--' + k for k in experiment.defaults)}"
+                f"--{key.replace('_', '-')} does not apply to {name}; its options: "
+                f"{', '.join('--' + k.replace('_', '-') for k in experiment.defaults)}"
             )
         options[key] = value
     for key in ("particles", "dim", "noise", "methods"):
@@ -67,7 +67,7 @@ def resolve_options(name: str, overrides: dict | None = None, quick: bool = Fals
             values = options[key] if isinstance(options[key], tuple) else (options[key],)
             for value in values:
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                    raise RunError(f"--{key} must be a positive integer, got {value!r}")
+                    raise RunError(f"--{key.replace('_', '-')} must be a positive integer, got {value!r}")
     if "steps" in options and options["steps"] < experiment.minimum_steps:
         raise RunError(f"--steps must be >= {experiment.minimum_steps} for {name}, got {options['steps']}")
     if "particles" in options and min(options["particles"]) < 2:
@@ -76,6 +76,9 @@ def resolve_options(name: str, overrides: dict | None = None, quick: bool = Fals
         raise RunError(f"--seed must be an integer >= 0, got {options.get('seed')!r}")
     if "noise" in options and not all(isinstance(v, (int, float)) and v > 0 for v in options["noise"]):
         raise RunError(f"--noise values must be > 0, got {options['noise']}")
+    gate = options.get("map_gate")
+    if gate is not None and (isinstance(gate, bool) or not isinstance(gate, (int, float)) or not gate >= 0):
+        raise RunError(f"--map-gate must be a ratio > 0, or 0 for none, got {gate!r}")
     if options.get("maps") is not None and not isinstance(options["maps"], str):
         raise RunError(f"--maps must be a directory, got {options['maps']!r}")
     if "dt" in options and not (isinstance(options["dt"], (int, float)) and options["dt"] > 0):
