@@ -318,9 +318,10 @@ def main(argv: list[str] | None = None) -> int:
                      help="offline training iterations of an amortised OT map (of each candidate), its distilled "
                           "student or a local map that is not stored yet")
     run.add_argument("--map-gate", dest="map_gate", type=float,
-                     help="the most an amortised OT map's (a) MSE may be, as a multiple of the online OT filter's on "
-                          "held-out truths, before the offline stage trains further candidates (0: no gate; default: "
-                          "the experiment's, Lorenz-63 1.25; none with --quick)")
+                     help="global amortised OT maps (methods amortised, amortised_warm, amortised_distilled): the most "
+                          "the kept map's (a) MSE may be, as a multiple of the online OT filter's on held-out truths, "
+                          "before the offline stage trains further candidates (0: no gate; default: the experiment's, "
+                          "Lorenz-63 1.25, the dynamic example none; none with --quick)")
     run.add_argument("--quick", action="store_true", help="small settings: under two minutes on 2 cores")
     run.add_argument("--no-progress", action="store_true", help="no progress bar or step reports")
     demo = commands.add_parser("demo", help="Lorenz-63 with EnKF and SIR, and the bimodal example where the OT "

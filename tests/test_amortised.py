@@ -5,6 +5,7 @@ The tests on the map trained for the Kalman comparison (``trained``: 12,000 offl
 about a minute) are ``long``; the bank, batch and context tests are quick."""
 
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -335,8 +336,10 @@ def test_a_gate_s_further_trainings_are_each_setting_from_its_next_unused_fold(t
     assert further_trainings({"wide": {"width": 8, "training_fold": SELECTION_FOLD - 1}, "narrow": {"width": 4}}) == {
         "wide_training_1001": {"width": 8, "training_fold": SELECTION_FOLD + 1},
         "narrow_training_1": {"width": 4, "training_fold": 1}}
-    for gate, message in ((0, "gate must be a ratio > 0"), (True, "gate must be a ratio > 0"),
-                          ("1.25", "gate must be a ratio > 0")):
+    with pytest.raises(ValueError, match="already has a 'plain_training_1' of other settings"):
+        further_trainings({"plain": {}, "plain_training_1": {"width": 8}})
+    for gate in (0, True, "1.25", float("inf"), float("nan")):
+        message = "gate must be a finite ratio > 0"
         with pytest.raises(ValueError, match=message):
             map_for(str(tmp_path / "map"), jax.random.key(0), "lorenz63", gate=gate)
     with pytest.raises(ValueError, match="extra_waves must be an int >= 0"):
@@ -735,7 +738,8 @@ def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
     assert set(warm["scores"]) == {"plain", "plain_second_training"} and set(selection["scores"]) == set(candidates)
     warm_mse = {label: np.inf if score["mse"] is None else score["mse"] for label, score in warm["scores"].items()}
     assert warm["chosen"] == min(warm_mse, key=warm_mse.get)
-    # (b)'s score recomputed: the same truths as (a)'s, the filter amortised_ot(map, **warm_options)
+    # (b)'s score recomputed: the bank's 3 held-out truths (a)'s 30 begin with, the filter
+    # amortised_ot(map, **warm_options)
     model = experiment_model("lorenz63", observed=(0,))
     truth_model, skip = selection_truths("lorenz63", observed=(0,), num_steps=30)
     assert skip == 3  # 30 steps do not reach t = 1.5: the first tenth
@@ -744,7 +748,9 @@ def test_lorenz63_s_stage_selects_b_s_start_by_b_s_score(tmp_path):
                       num_steps=30, num_particles=40, skip_steps=skip, truth_model=truth_model,
                       filter_options=warm_options(chosen_map, "lorenz63"))
     np.testing.assert_allclose(again.mse, warm["scores"][warm["chosen"]]["mse"], rtol=1e-4)
-    assert again.mse != pytest.approx(selection["scores"][warm["chosen"]]["mse"], rel=1e-3)  # (b), not (a)
+    a_on_the_same = score_map(jax.random.fold_in(jax.random.key(3), SELECTION_FOLD), model, chosen_map,
+                              num_simulations=3, num_steps=30, num_particles=40, skip_steps=skip, truth_model=truth_model)
+    assert again.mse != pytest.approx(a_on_the_same.mse, rel=1e-3)  # (b), not (a)
     # warm_map_for: the stored start, the candidate's networks; (b) is built from it
     start = warm_map_for(str(directory), kept)
     for got, want in zip(jax.tree.leaves(start.params), jax.tree.leaves(chosen_map.params)):
@@ -776,7 +782,7 @@ def test_a_stage_whose_kept_map_misses_the_gate_trains_further_candidates_and_re
     assert gate["added"] == {"plain_training_1": {"training_fold": 1}, "plain_training_2": {"training_fold": 2}}
     assert set(selection["scores"]) == {"plain", "plain_training_1", "plain_training_2"}
     assert json.loads((directory / "candidates" / "plain_training_2" / "options.json").read_text())["training_fold"] == 2
-    mse = {label: score["mse"] for label, score in selection["scores"].items()}
+    mse = {label: np.inf if score["mse"] is None else score["mse"] for label, score in selection["scores"].items()}
     assert selection["chosen"] == min(mse, key=mse.get)
     for got, want in zip(jax.tree.leaves(kept.params),
                          jax.tree.leaves(load_map(directory / "candidates" / selection["chosen"]).params)):
@@ -794,6 +800,17 @@ def test_a_stage_whose_kept_map_misses_the_gate_trains_further_candidates_and_re
     warm = selection["warm"]
     assert set(warm["scores"]) == set(mse)
     assert {len(score["per_simulation"]) for score in warm["scores"].values()} == {3}
+    # An interrupted stage resumes: the same gate reloads the further trainings, trains nothing, and
+    # comes to the same choice.
+    (directory / "map.json").unlink()
+    stored = {label: os.path.getmtime(directory / "candidates" / label / "map.json") for label in mse}
+    with pytest.warns(UserWarning, match="after 2 further trainings"):
+        resumed, histories = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,
+                                     candidates={"plain": {}}, gate=1e-3, extra_waves=2, selection_simulations=4,
+                                     **small)
+    assert histories is None and resumed.info["selection"]["gate"]["added"] == gate["added"]
+    assert resumed.info["selection"]["chosen"] == selection["chosen"]
+    assert {label: os.path.getmtime(directory / "candidates" / label / "map.json") for label in mse} == stored
     # A gate the candidates pass: the stored candidates are reloaded, none is added.
     (directory / "map.json").unlink()
     again, histories = map_for(str(directory), jax.random.key(3), "lorenz63", observed=(0,), workers=False,

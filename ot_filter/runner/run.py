@@ -77,8 +77,8 @@ def resolve_options(name: str, overrides: dict | None = None, quick: bool = Fals
     if "noise" in options and not all(isinstance(v, (int, float)) and v > 0 for v in options["noise"]):
         raise RunError(f"--noise values must be > 0, got {options['noise']}")
     gate = options.get("map_gate")
-    if gate is not None and (isinstance(gate, bool) or not isinstance(gate, (int, float)) or not gate >= 0):
-        raise RunError(f"--map-gate must be a ratio > 0, or 0 for none, got {gate!r}")
+    if gate is not None and (isinstance(gate, bool) or not isinstance(gate, (int, float)) or not 0 <= gate < np.inf):
+        raise RunError(f"--map-gate must be a finite ratio > 0, or 0 for none, got {gate!r}")
     if options.get("maps") is not None and not isinstance(options["maps"], str):
         raise RunError(f"--maps must be a directory, got {options['maps']!r}")
     if "dt" in options and not (isinstance(options["dt"], (int, float)) and options["dt"] > 0):
