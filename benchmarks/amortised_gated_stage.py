@@ -67,7 +67,18 @@ def main():
     parser.add_argument("--fresh-simulations", type=int, default=30)
     args = parser.parse_args()
     observed = tuple(int(i) for i in args.observed.split(","))
+    keys = args.filter_keys.split(",")
+    # checked before the stage's 17 minutes, not after
+    if observed not in ONLINE:
+        parser.error(f"--observed must be one of {sorted(','.join(map(str, o)) for o in ONLINE)}")
+    online = json.load(open(ONLINE[observed]))
+    missing = sorted(set(keys) - set(online))
+    if missing:
+        parser.error(f"--filter-keys {missing}: the online filter has runs on keys {sorted(online)} only")
     record = json.load(open(args.out)) if os.path.exists(args.out) else {}
+    for name, value in (("observed", list(observed)), ("key", args.key)):
+        if record.get(name, value) != value:
+            parser.error(f"--out {args.out} holds a stage with {name} {record[name]}, not {value}")
     record.update(observed=list(observed), key=args.key, truths_key=TRUTHS_KEY)
 
     def save():
@@ -76,7 +87,9 @@ def main():
     started = time.perf_counter()
     kept, _ = map_for(args.maps, jax.random.key(args.key), "lorenz63", 3, observed)
     selection = kept.info["selection"]
-    record.setdefault("stage_wall_seconds", time.perf_counter() - started)  # a reload keeps the first run's
+    # The first run's wall time (a reload keeps it); a stage interrupted and resumed records only its
+    # last part here, as map_for's offline_wall_seconds does.
+    record.setdefault("stage_wall_seconds", time.perf_counter() - started)
     record["selection"] = selection
     save()
     gate = selection.get("gate", {})
@@ -85,8 +98,6 @@ def main():
           f"after {len(gate.get('added', {}))} further trainings", flush=True)
 
     updates = amortised_updates(kept, "lorenz63", warm_map_for(args.maps, kept))
-    online = json.load(open(ONLINE[observed]))
-    keys = args.filter_keys.split(",")
     runs = record.setdefault("table_truths", {})
     for method, update in updates.items():
         for key in keys:
