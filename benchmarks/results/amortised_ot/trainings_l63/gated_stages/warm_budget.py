@@ -1,8 +1,10 @@
 """(b) with another per-step budget from each gated stage's start, on its 30 fresh truths (key
 2027), paired with the online filter's run there; adds ``amortised_warm_FIRST_FLOOR`` to each
-stage's record.
+stage's record (``amortised_WARM_FIRST_FLOOR`` for a start stored under ``{stage}_maps/WARM``, e.g.
+one distilled to width 32 with ``benchmarks/amortised_distil.py --widths 32``).
 
     PYTHONPATH=. python benchmarks/results/amortised_ot/trainings_l63/gated_stages/warm_budget.py 32,32
+    PYTHONPATH=. python benchmarks/results/amortised_ot/trainings_l63/gated_stages/warm_budget.py 32,8 warm_w32 x1_key72
 """
 import json
 import os
@@ -18,21 +20,24 @@ from ot_filter.experiments._common import write_text_atomic
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 schedule = tuple(int(v) for v in sys.argv[1].split(","))
-for name, observed in (("x1x3_key71", (0, 2)), ("x1_key72", (0,))):
+warm_name = sys.argv[2] if len(sys.argv) > 2 else "warm"
+STAGES = {"x1x3_key71": (0, 2), "x1_key72": (0,)}
+for name in sys.argv[3].split(",") if len(sys.argv) > 3 else STAGES:
+    observed = STAGES[name]
     record_path = os.path.join(HERE, f"{name}.json")
-    record = json.load(open(record_path))
-    fresh = record["fresh_truths"]["2027"]
-    warm = load_map(os.path.join(HERE, f"{name}_maps", "warm"))
+    fresh = json.load(open(record_path))["fresh_truths"]["2027"]
+    warm = load_map(os.path.join(HERE, f"{name}_maps", warm_name))
     options = dict(warm_options(warm, "lorenz63"), num_iterations=schedule)
     model = experiment_model("lorenz63", 3, observed)
     truth_model, skip = selection_truths("lorenz63", 3, observed)
     score = score_filter(jax.random.key(2027), model, amortised_ot(warm, **options), num_simulations=30, num_steps=500,
                          num_particles=1000, skip_steps=skip, truth_model=truth_model).record()
-    label = f"amortised_warm_{schedule[0]}_{schedule[1]}"
-    fresh[label] = score
+    label = f"amortised_{warm_name}_{schedule[0]}_{schedule[1]}"
     reference = np.asarray(fresh["ot"]["per_simulation"], float)
     difference = np.asarray(score["per_simulation"], float) - 1.1 * reference
-    fresh[label + "_paired"] = {"over_online": score["mse"] / fresh["ot"]["mse"], "minus_1.1_online": float(difference.mean()),
-                                "stderr": float(difference.std(ddof=1) / np.sqrt(difference.size))}
-    print(name, label, score["mse"], score["fallback_steps"], round(score["seconds"]), fresh[label + "_paired"], flush=True)
+    paired = {"over_online": score["mse"] / fresh["ot"]["mse"], "minus_1.1_online": float(difference.mean()),
+              "stderr": float(difference.std(ddof=1) / np.sqrt(difference.size))}
+    print(name, label, score["mse"], score["fallback_steps"], round(score["seconds"]), paired, flush=True)
+    record = json.load(open(record_path))  # read again: another budget's run may have written it meanwhile
+    record["fresh_truths"]["2027"].update({label: score, label + "_paired": paired})
     write_text_atomic(record_path, json.dumps(record, indent=1))
