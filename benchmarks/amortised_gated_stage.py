@@ -4,9 +4,11 @@
     PYTHONPATH=.:benchmarks python benchmarks/amortised_gated_stage.py --observed 0,2 --key 71 \
         --maps DIR --out RECORD.json [--filter-keys 0,1,2]
 
-The stage is ``map_for`` with the experiment's defaults (0.2.13: four candidates in pinned
+The stage is ``map_for`` with the experiment's defaults (since 0.2.13: four candidates in pinned
 workers, (a) selected and gated on 30 held-out truths against the online OT filter, further
-waves while the kept map is over 1.25 times it, (b)'s start selected among the plain maps), timed
+waves while the kept map is over 1.25 times it, (b)'s start selected among the plain maps by
+(b)'s own score, with (b)'s budget ``WARM_OPTIONS``: (32, 8) until 0.2.13, (32, 16) since
+0.2.14; the record holds it and the version, and is not extended under another budget), timed
 as one wall-clock run. Then (a) with the kept map and (b) from the selected start on the table's
 truths (``benchmarks/amortised_ot.py``'s key 2026, 10 simulations, N = 1000, MSE of the mean to
 the truth after t = 1.5; Lorenz-63 has no exact posterior), paired truth by truth with the online
@@ -34,10 +36,11 @@ import time  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
+import ot_filter  # noqa: E402
 from amortised_warm_from import TRUTHS_KEY, score  # noqa: E402
 from ot_filter.experiments._common import write_text_atomic  # noqa: E402
 from ot_filter.amortised.selection import score_filter  # noqa: E402
-from ot_filter.experiments.amortised import (amortised_updates, experiment_model, map_for, online_update,  # noqa: E402
+from ot_filter.experiments.amortised import (WARM_OPTIONS, amortised_updates, experiment_model, map_for, online_update,  # noqa: E402
                                              selection_truths, warm_map_for)
 
 ONLINE = {(0, 2): "benchmarks/results/amortised_ot/distilled/l63/online.json",
@@ -76,10 +79,13 @@ def main():
     if missing:
         parser.error(f"--filter-keys {missing}: the online filter has runs on keys {sorted(online)} only")
     record = json.load(open(args.out)) if os.path.exists(args.out) else {}
-    for name, value in (("observed", list(observed)), ("key", args.key)):
+    # (b)'s budget is the version's (WARM_OPTIONS; 0.2.14 changed it): a record of another is not extended
+    warm = json.loads(json.dumps(WARM_OPTIONS["lorenz63"]))
+    for name, value in (("observed", list(observed)), ("key", args.key), ("warm_options", warm)):
         if record.get(name, value) != value:
             parser.error(f"--out {args.out} holds a stage with {name} {record[name]}, not {value}")
-    record.update(observed=list(observed), key=args.key, truths_key=TRUTHS_KEY)
+    record.update(observed=list(observed), key=args.key, truths_key=TRUTHS_KEY, warm_options=warm,
+                  ot_filter_version=record.get("ot_filter_version", ot_filter.__version__))
 
     def save():
         write_text_atomic(args.out, json.dumps(record, indent=1))

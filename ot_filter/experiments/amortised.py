@@ -63,7 +63,7 @@ OFFLINE = {
 # x1) at 1.08-1.30, (32, 8) 1.08 and 1.14 at 0.56-0.67. On 30 fresh truths of two gated stages
 # (0.2.13's starts, chosen by (b)'s own score; benchmarks/results/amortised_ot/trainings_l63/
 # gated_stages/): (32, 8) 1.16 and 1.19, over the 10 % target; (32, 16) 1.07 and 1.09 (0.06 and
-# 0.11 lower in MSE, 2.3 and 2.6 s.e. paired) at 0.95 of the online filter's run time; (32, 32)
+# 0.11 lower in MSE, 2.2 and 2.6 s.e. paired) at 0.95 of the online filter's run time; (32, 32)
 # 1.03 and 1.04 at 1.82. So (32, 16): the cheapest measured budget within the target. The
 # dynamic example's maps above n = 4 are averages of iterates (``map_options``), and (b) there
 # was measured from the average (0.85 and 0.91 of the online filter at n = 10), so it keeps that

@@ -1,7 +1,13 @@
 """(b) with another per-step budget from each gated stage's start, on its 30 fresh truths (key
 2027), paired with the online filter's run there; adds ``amortised_warm_FIRST_FLOOR`` to each
 stage's record (``amortised_WARM_FIRST_FLOOR`` for a start stored under ``{stage}_maps/WARM``, e.g.
-one distilled to width 32 with ``benchmarks/amortised_distil.py --widths 32``).
+``warm_w32``, each stage's start distilled to width 32 (bank 21-27 s, distillation 62-68 s), made by
+
+    PYTHONPATH=.:benchmarks python benchmarks/amortised_distil.py --experiment lorenz63 --observed 0,2 \
+        --map benchmarks/results/amortised_ot/trainings_l63/gated_stages/x1x3_key71_maps/warm \
+        --widths 32 --skip score,cost --key 38 --out /tmp/distil_x1x3_key71
+    (the same with --observed 0 and x1_key72), then /tmp/distil_STAGE/maps/width32 moved to
+    STAGE_maps/warm_w32 with the run's distil.json).
 
     PYTHONPATH=. python benchmarks/results/amortised_ot/trainings_l63/gated_stages/warm_budget.py 32,32
     PYTHONPATH=. python benchmarks/results/amortised_ot/trainings_l63/gated_stages/warm_budget.py 32,8 warm_w32 x1_key72
