@@ -1,7 +1,7 @@
 """Lorenz-96 (n = 40, N = 100): the localised OT filter against the LETKF, with linear and with
 squared observations, on the same truths.
 
-    PYTHONPATH=. python benchmarks/ot_lorenz96.py [--operator linear|square] [--simulations 4]
+    PYTHONPATH=. python benchmarks/ot_lorenz96.py [--operator linear|square|abs] [--simulations 4]
         [--steps 500] [--methods letkf,local_ot,...] [--noise 1.0] [--every 1]
 
 Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the same seed):
@@ -147,7 +147,7 @@ def run(method, model, keys, observations, num_particles):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--operator", choices=("linear", "square"), default="linear")
+    parser.add_argument("--operator", choices=("linear", "square", "abs"), default="linear")
     parser.add_argument("--noise", type=float, default=1.0, help="observation noise std")
     parser.add_argument("--every", type=int, default=1, help="RK4 steps (0.05) between observations")
     parser.add_argument("--simulations", type=int, default=4)

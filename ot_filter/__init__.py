@@ -35,7 +35,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.14"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.15"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -60,6 +60,7 @@ __version__ = "0.2.14"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       0.2.13: Lorenz-63's offline stage holds its kept map's (a) to 1.25 times the online OT
 #                       filter's MSE on the held-out truths, training further candidates while it is over (gate)
 #                       0.2.14: amortised (b) on Lorenz-63 warm-starts with (32, 16) iterations a step (was (32, 8))
+#                       0.2.15: lorenz96 takes observation_operator="abs" (y = |x| + noise)
 
 __all__ = [
     "BayesUpdate",

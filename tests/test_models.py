@@ -85,6 +85,20 @@ def test_model_builders_reject_bad_input():
         otf.simulate(jax.random.key(0), models.lorenz63(), 0)
 
 
+def test_lorenz_observation_operators_observe_what_they_name():
+    """'linear', 'square' and 'abs' apply x, x^2 and |x| to the observed components only, and
+    an unknown operator is refused with the names it could have been."""
+    x = jnp.array([-2.0, -0.5, 0.0, 1.5, 3.0])
+    observed = (4, 0, 1)
+    expected = {"linear": [3.0, -2.0, -0.5], "square": [9.0, 4.0, 0.25], "abs": [3.0, 2.0, 0.5]}
+    for operator, values in expected.items():
+        model = models.lorenz96(dim=5, observed=observed, observation_operator=operator)
+        np.testing.assert_allclose(model.observation_function(x), values, rtol=1e-6)
+        assert otf.model.model_dimensions(model) == (5, len(observed))
+    with pytest.raises(ValueError, match="observation_operator.*'abs'"):
+        models.lorenz96(observation_operator="cube")
+
+
 def test_lorenz96_vector_field_matches_its_definition():
     x = jax.random.normal(jax.random.key(0), (3, 7))  # batched: a leading axis of members
     got = np.asarray(otf.models.lorenz.lorenz96_vector_field(x, 8.0))
