@@ -1,5 +1,5 @@
-"""Lorenz-96 (n = 40, N = 100): the localised OT filter against the LETKF, with linear and with
-squared observations, on the same truths.
+"""Lorenz-96 (n = 40, N = 100): the localised OT filter against the LETKF, with linear, squared
+and absolute-value observations, on the same truths.
 
     PYTHONPATH=. python benchmarks/ot_lorenz96.py [--operator linear|square|abs] [--simulations 4]
         [--steps 500] [--methods letkf,local_ot,...] [--noise 1.0] [--every 1]
