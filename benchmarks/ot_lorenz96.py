@@ -109,6 +109,8 @@ def build(method: str, model):
                                  divergence_threshold=1e-12)
     if method.startswith("local_ot:"):
         iterations, *rest = method.split(":")[1:]
+        if len(rest) > 3:
+            raise ValueError(f"unknown method {method!r}: local_ot:K[:F[:B[:I]]]")
         options = {}
         if rest and rest[0]:
             options["potential_learning_rate"] = float(rest[0])
