@@ -27,6 +27,10 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
   (``tests/test_local_ot.py``).
 - ``letkf_step``, ``layer_step``, ``local_ot_step``: the same three with a step taper of the
   LETKF's radius (windows of 4 observations either side), the catalogue's choice before.
+- ``local_ot_location``: the catalogue's ``local_ot``, its networks also reading where each window
+  sits (``location_context=True``: the mean and spread of its coordinates and observations,
+  which standardisation hides; with y = |x| or x^2 a window near 0 is ambiguous in sign and one
+  far from 0 is not).
 - ``local_ot_warm``: the catalogue's windows and layer, with networks warm-started from step to
   step (the 256 -> 64 schedule), T's learning rate 1e-4 and a loss bound of 0.02 that restarts
   them when they drift.
@@ -61,8 +65,8 @@ from ot_filter.experiments._common import simulate_truths, write_text_atomic  # 
 from ot_filter.models import lorenz96  # noqa: E402
 from ot_filter.runner.catalogue import LORENZ96_LOCAL, cell_key, lorenz96_local_ot, lorenz96_update  # noqa: E402
 
-METHODS = ("enkf", "letkf", "letkf_step", "sir", "layer", "layer_step", "local_ot", "local_ot_step", "local_ot_warm",
-           "local_ot_perturbed")
+METHODS = ("enkf", "letkf", "letkf_step", "sir", "layer", "layer_step", "local_ot", "local_ot_step", "local_ot_location",
+           "local_ot_warm", "local_ot_perturbed")
 
 
 class AveragedState(NamedTuple):
@@ -121,6 +125,8 @@ def build(method: str, model):
         return lorenz96_local_ot(model, int(iterations), warm_start=False, **options)
     if method == "local_ot_step":
         return lorenz96_local_ot(model, local["ot_iterations"], taper="step", warm_start=False)
+    if method == "local_ot_location":
+        return lorenz96_local_ot(model, local["ot_iterations"], warm_start=False, location_context=True)
     if method == "local_ot_warm":
         return lorenz96_local_ot(model, (256, 64), divergence_threshold=0.02, transport_learning_rate=1e-4)
     if method == "local_ot_perturbed":
