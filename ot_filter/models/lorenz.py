@@ -194,8 +194,8 @@ def lorenz96(
     (y = x[observed]^2 + noise: the sign is not observed, so where the ensemble straddles 0 the
     posterior of a coordinate has two modes, as in the chapter's examples) or 'abs'
     (y = |x[observed]| + noise, Poterjoy's (2016) operator for localised particle filters: the
-    sign is lost as with 'square', but the magnitude is observed equally well everywhere, so the
-    two modes of a straddling ensemble are sharp instead of washed out near 0).
+    sign is lost as with 'square', but the magnitude is observed equally well everywhere, so
+    where the ensemble straddles 0 the posterior's two modes are sharp, not washed out near 0).
 
     The model carries its geometry (``model.geometry``, a ``localisation.ring`` of ``dim``
     sites, each observation at the site it observes) for ``ot_filter.localisation``.
