@@ -1,8 +1,8 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``ot``, ``local_ot``, and ``amortised_ot`` with a map trained offline by
-``amortised``);
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``local_etpf``, ``ot``, ``local_ot``, and ``amortised_ot`` with a map trained offline by
+``amortised``; ``split_likelihood`` chains them on powers of the likelihood);
 ``localisation`` describes where the state and observations lie (``ring``, ``points``) and builds
 the taper and the local windows; ``run_filter`` composes them into a
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference. ``continuous`` holds the continuous-time part
@@ -27,15 +27,18 @@ from ot_filter.updates import (
     SIRState,
     enkf,
     letkf,
+    local_etpf,
     local_ot,
     ot,
     resample_indices,
     sir,
+    split_likelihood,
+    tempered_model,
 )
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.15"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.16"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -61,6 +64,8 @@ __version__ = "0.2.15"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       filter's MSE on the held-out truths, training further candidates while it is over (gate)
 #                       0.2.14: amortised (b) on Lorenz-63 warm-starts with (32, 16) iterations a step (was (32, 8))
 #                       0.2.15: lorenz96 takes observation_operator="abs" (y = |x| + noise)
+#                       0.2.16: local_etpf, split_likelihood and tempered_model; the runner's lorenz96 offers
+#                       letkf_etpf (the LETKF on l^0.75, the localised ETPF on l^0.25)
 
 __all__ = [
     "BayesUpdate",
@@ -84,6 +89,7 @@ __all__ = [
     "enkf",
     "kalman_filter",
     "letkf",
+    "local_etpf",
     "local_ot",
     "local_windows",
     "localisation",
@@ -99,4 +105,6 @@ __all__ = [
     "simulate",
     "simulate_observations",
     "sir",
+    "split_likelihood",
+    "tempered_model",
 ]

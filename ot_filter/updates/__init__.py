@@ -9,10 +9,12 @@ from ot_filter.updates.base import (
 )
 from ot_filter.updates.enkf import EnKFInfo, EnKFSettings, enkf
 from ot_filter.updates.letkf import LETKFInfo, LETKFSettings, letkf
+from ot_filter.updates.local_etpf import LocalETPFInfo, LocalETPFSettings, local_etpf
 from ot_filter.updates.local_ot import LocalOTSettings, LocalOTState, LocalOTUpdate, local_ot
 from ot_filter.updates.ot import OTInfo, OTSettings, OTState, OTStructure, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
 from ot_filter.updates.sir import SIRInfo, SIRSettings, SIRState, sir
+from ot_filter.updates.tempering import SplitLikelihoodInfo, SplitLikelihoodState, split_likelihood, tempered_model
 
 __all__ = [
     "BayesUpdate",
@@ -20,6 +22,8 @@ __all__ = [
     "EnKFSettings",
     "LETKFInfo",
     "LETKFSettings",
+    "LocalETPFInfo",
+    "LocalETPFSettings",
     "LocalOTSettings",
     "LocalOTState",
     "LocalOTUpdate",
@@ -32,14 +36,19 @@ __all__ = [
     "SIRInfo",
     "SIRSettings",
     "SIRState",
+    "SplitLikelihoodInfo",
+    "SplitLikelihoodState",
     "UniformWeightsState",
     "active_mask",
     "count_active",
     "enkf",
     "letkf",
+    "local_etpf",
     "local_ot",
     "ot",
     "resample_indices",
     "sir",
+    "split_likelihood",
+    "tempered_model",
     "uniform_log_weights",
 ]
