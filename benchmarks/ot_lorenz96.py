@@ -38,6 +38,9 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
   1.04) of the prior anomalies, Gaspari-Cohn radius R (default 4). ``etpf_after:...``: the
   LETKF's part first (the hybrid of Chustagulprom, Reich & Reinhardt 2016). What a localised
   non-Gaussian update gains at this N without a network's training noise.
+- ``letkf_split:A`` or ``letkf_split:A:I``: ``etpf_after:A:I`` with the LETKF again in place of the
+  transport: what the split alone does (with a nonlinear h the second LETKF linearises around the
+  first one's output, as a multiple-data-assimilation step does).
 - ``local_ot_tempered:A`` (or ``local_ot_tempered:A:location``): the LETKF on the likelihood to
   the power 1 - A, then the catalogue's ``local_ot`` (inflation 1: the LETKF inflated) on the
   rest (``otf.split_likelihood``), as ``etpf_after:A`` with the neural map in place of the exact
@@ -130,6 +133,11 @@ def build(method: str, model):
                                         [1.0 - alpha, alpha])
         return otf.split_likelihood([otf.local_etpf(localisation, inflation), otf.letkf(localisation)],
                                     [alpha, 1.0 - alpha])
+    if method.startswith("letkf_split:"):  # letkf_split:A[:I], the control of etpf_after:A[:I]
+        alpha, *rest = (float(v) for v in method.split(":")[1:])
+        localisation = otf.localisation(model.geometry, radius)
+        return otf.split_likelihood([otf.letkf(localisation, rest[0] if rest else local["inflation"]),
+                                     otf.letkf(localisation)], [1.0 - alpha, alpha])
     if method.startswith("local_ot_tempered:"):  # local_ot_tempered:A[:location]
         alpha, *rest = method.split(":")[1:]
         options = {"location_context": True} if rest == ["location"] else {}

@@ -6,6 +6,8 @@ coordinate is that transport of its own importance weights; two square-root EnKF
 l^a and l^(1 - a) give the one-step posterior mean and covariance exactly.
 """
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,6 +56,31 @@ def test_monotone_transport_is_the_north_west_corner_coupling(x64, num):
     assert np.all(np.diff(moved[order]) >= -1e-12)  # ranks kept
     # Uniform weights: every particle keeps its own 1/N of quantile, the identity.
     np.testing.assert_allclose(monotone_transport(jnp.asarray(values), jnp.zeros(num)), values, rtol=0, atol=1e-10)
+
+
+def test_monotone_transport_edge_cases(x64):
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=9)
+    # All the weight on one particle: everything goes there.
+    log_weights = np.full(9, -np.inf)
+    log_weights[4] = 0.0
+    np.testing.assert_allclose(monotone_transport(jnp.asarray(values), jnp.asarray(log_weights)), values[4], atol=1e-12)
+    # Zero weights (-inf) and ties: the north-west corner coupling still.
+    tied = np.round(values, 0)
+    log_weights = rng.normal(size=9)
+    log_weights[[1, 6]] = -np.inf
+    moved = np.asarray(monotone_transport(jnp.asarray(tied), jnp.asarray(log_weights)))
+    np.testing.assert_allclose(np.sort(moved), np.sort(_north_west_corner_projection(tied, log_weights)), atol=1e-10)
+    # Padding that is not a prefix, and one active particle: it stays where it is.
+    active = np.array([False, True, False, True, True, False, True, False, False])
+    log_weights = rng.normal(size=9)
+    moved = np.asarray(monotone_transport(jnp.asarray(values), jnp.asarray(log_weights), jnp.asarray(active)))
+    np.testing.assert_allclose(moved[active], _north_west_corner_projection(values[active], log_weights[active]),
+                               atol=1e-10)
+    np.testing.assert_array_equal(moved[~active], values[~active])
+    only = np.arange(9) == 5
+    moved = np.asarray(monotone_transport(jnp.asarray(values), jnp.asarray(rng.normal(size=9)), jnp.asarray(only)))
+    np.testing.assert_allclose(moved, values, atol=1e-12)
 
 
 def test_monotone_transport_in_float32_keeps_its_digits_far_from_zero():
@@ -130,6 +157,23 @@ def test_local_etpf_tapers_log_likelihoods_and_leaves_missing_components_out(x64
     assert not np.allclose(posterior[:, 0], particles[:, 0])
 
 
+def test_local_etpf_reaching_everything_with_a_full_r_weighs_by_the_whole_likelihood(x64):
+    n, num = 5, 11
+    cov = np.array([[0.5, 0.2, 0.0, 0.0, 0.1], [0.2, 0.6, 0.1, 0.0, 0.0], [0.0, 0.1, 0.7, 0.2, 0.0],
+                    [0.0, 0.0, 0.2, 0.5, 0.1], [0.1, 0.0, 0.0, 0.1, 0.4]])
+    model = otf.models.lorenz96(dim=n, observation_operator="abs")._replace(observation_noise_cov=jnp.asarray(cov))
+    particles = _ensemble(4, num, n)
+    y = jnp.asarray(np.abs(np.random.default_rng(5).normal(size=n)) + 1.0)
+    update = otf.local_etpf(otf.localisation(model.geometry, 100.0, taper="step"))
+    posterior, _, _ = update.apply(jax.random.key(0), update.init(jax.random.key(0), particles), particles, y, model)
+    x = np.asarray(particles)
+    residual = np.asarray(y) - np.abs(x)
+    log_likelihood = -0.5 * np.einsum("ij,jk,ik->i", residual, np.linalg.inv(cov), residual)
+    for j in range(n):
+        np.testing.assert_allclose(posterior[:, j], _north_west_corner_projection(x[:, j], log_likelihood), rtol=0,
+                                   atol=1e-9)
+
+
 def test_local_etpf_batched_jitted_and_padded_give_the_same_update(x64):
     model = otf.models.lorenz96(dim=10, observation_operator="square", observation_noise_std=2.0)
     particles = _ensemble(5, 12, 10)
@@ -188,11 +232,50 @@ def test_a_split_likelihood_of_two_square_root_steps_is_the_one_step_posterior(x
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
     assert len(info.steps) == 2 and len(new_state.states) == 2
     np.testing.assert_array_equal(new_state.log_weights, uniform_log_weights(particles))
-    # The split is not a no-op: l^0.3 alone is another posterior.
-    partial = otf.split_likelihood([otf.enkf(perturbed=False)], [1.0])
-    same, _, _ = partial.apply(jax.random.key(0), partial.init(jax.random.key(0), particles, model), particles, y,
-                               otf.tempered_model(model, 0.3))
-    assert np.max(np.abs(_gaussian_moments(same)[0] - _gaussian_moments(expected)[0])) > 1e-2
+
+
+class _Recording(NamedTuple):
+    init: object
+    apply: object
+
+
+def _recording_update(shift):
+    """Moves every particle by ``shift`` and reports the noise covariance and factors it was given."""
+    def apply(key, state, particles, observation, model):
+        return particles + shift, state, (model.observation_noise_cov, model.observation_noise_factors[1])
+    return _Recording(init_uniform_weights, apply)
+
+
+def test_split_likelihood_gives_each_step_its_power_in_order(x64):
+    model = otf.model.with_observation_noise_factors(otf.models.lorenz96(dim=4, observation_noise_std=0.5))
+    particles = _ensemble(0, 5, 4)
+    split = otf.split_likelihood([_recording_update(1.0), _recording_update(10.0)], [0.2, 0.8])
+    moved, _, info = split.apply(jax.random.key(0), split.init(jax.random.key(0), particles, model), particles,
+                                 jnp.zeros(4), model)
+    np.testing.assert_allclose(moved, particles + 11.0)
+    (first_cov, first_inverse), (second_cov, second_inverse) = info.steps
+    np.testing.assert_allclose(first_cov, 0.25 / 0.2, rtol=1e-12)  # R / power, in the given order
+    np.testing.assert_allclose(second_cov, 0.25 / 0.8, rtol=1e-12)
+    np.testing.assert_allclose(first_inverse, np.sqrt(0.2) / 0.5, rtol=1e-12)  # L^{-1} sqrt(power)
+    np.testing.assert_allclose(second_inverse, np.sqrt(0.8) / 0.5, rtol=1e-12)
+
+
+def test_split_likelihood_hands_a_weighting_steps_weights_on(x64):
+    # SIR last, without resampling: its log-weights are those of l^0.6 at the EnKF step's output.
+    model = otf.models.lorenz96(dim=4, observation_noise_std=0.7, observation_operator="square")
+    particles = _ensemble(1, 8, 4)
+    y = jnp.asarray([4.0, 1.0, 9.0, 2.0])
+    split = otf.split_likelihood([otf.enkf(perturbed=False), otf.sir(ess_threshold=0.0)], [0.4, 0.6])
+    moved, state, _ = split.apply(jax.random.key(0), split.init(jax.random.key(0), particles, model), particles, y,
+                                  model)
+    first = otf.enkf(perturbed=False)
+    expected, _, _ = first.apply(jax.random.key(0), first.init(jax.random.key(0), particles), particles, y,
+                                 otf.tempered_model(model, 0.4))
+    np.testing.assert_allclose(moved, expected, rtol=0, atol=1e-10)
+    log_likelihood = 0.6 * np.asarray(jax.vmap(model.log_likelihood, in_axes=(None, 0))(y, expected))
+    weights = np.exp(log_likelihood - log_likelihood.max())
+    np.testing.assert_allclose(np.exp(state.log_weights), weights / weights.sum(), rtol=1e-8)
+    np.testing.assert_array_equal(state.states[1].log_weights, state.log_weights)
 
 
 def test_split_likelihood_runs_in_a_filter_and_vmaps_over_its_powers_in_one_program(x64):
@@ -229,6 +312,14 @@ def test_tempered_model_raises_the_likelihood_to_its_power(x64):
     np.testing.assert_allclose(np.var(np.asarray(draws - x), axis=0), 1.0, atol=0.05)
     factored = otf.tempered_model(otf.model.with_observation_noise_factors(model), 0.25)
     np.testing.assert_allclose(factored.observation_noise_factors[0], 1.0, rtol=1e-12)
+    np.testing.assert_allclose(factored.observation_noise_factors[1], 1.0, rtol=1e-12)
+    # A full R: the factors of R / power are those of R scaled, and a log-density is power times.
+    cov = np.array([[0.5, 0.2, 0.0, 0.0, 0.1], [0.2, 0.6, 0.1, 0.0, 0.0], [0.0, 0.1, 0.7, 0.2, 0.0],
+                    [0.0, 0.0, 0.2, 0.5, 0.1], [0.1, 0.0, 0.0, 0.1, 0.4]])
+    full = otf.model.with_observation_noise_factors(model._replace(observation_noise_cov=jnp.asarray(cov)))
+    chol, inverse = otf.tempered_model(full, 0.25).observation_noise_factors
+    np.testing.assert_allclose(chol @ chol.T, cov / 0.25, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(inverse @ chol, np.eye(5), rtol=0, atol=1e-10)
     with pytest.raises(ValueError, match="power"):
         otf.tempered_model(model, 0.0)
     with pytest.raises(ValueError, match="additive Gaussian"):

@@ -15,22 +15,22 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ot_filter.model import simulate
 from ot_filter.localisation import local_windows, localisation
-from ot_filter.updates import enkf, letkf, ot, sir
+from ot_filter.updates import enkf, letkf, local_etpf, ot, sir
 from ot_filter.updates.local_ot import local_ot
 
 METHODS = ("enkf", "sir", "ot")
-# Every method an experiment on a model with a geometry can run: the localised ones (``local_ot``
-# and ``letkf``) read ``model.geometry`` at the radius the experiment gives.
-LOCAL_METHODS = ("letkf", "local_ot")
-ALL_METHODS = ("enkf", "letkf", "sir", "ot", "local_ot")
+# Every method an experiment on a model with a geometry can run: the localised ones (``letkf``,
+# ``local_ot`` and ``local_etpf``) read ``model.geometry`` at the radius the experiment gives.
+LOCAL_METHODS = ("letkf", "local_ot", "local_etpf")
+ALL_METHODS = ("enkf", "letkf", "sir", "ot", "local_ot", "local_etpf")
 
 
 def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: dict | None = None,
                  model=None, radius: float | None = None, state_radius: float = 0.0) -> dict:
     """``{name: update}`` for the named methods; OT gets ``ot_defaults`` updated by ``ot_options``
-    (the localised OT update too). ``letkf`` and ``local_ot`` need the ``model`` (its geometry)
-    and a localisation ``radius`` (a step taper for the LETKF, so that both see the same
-    observations)."""
+    (the localised OT update too). ``letkf``, ``local_ot`` and ``local_etpf`` need the ``model``
+    (its geometry) and a localisation ``radius`` (a step taper for the LETKF and the LETPF, so
+    that all three see the same observations)."""
     options = dict(ot_defaults or {})
     options.update(ot_options or {})
     local_options = {k: v for k, v in options.items() if k not in ("concavity_points", "prior_smoothing",
@@ -48,6 +48,7 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
         "letkf": lambda: localised(lambda: letkf(localisation(model.geometry, max(radius, 1e-6), "step"))),
         "local_ot": lambda: localised(lambda: local_ot(local_windows(model.geometry, radius, state_radius),
                                                        **local_options)),
+        "local_etpf": lambda: localised(lambda: local_etpf(localisation(model.geometry, max(radius, 1e-6), "step"))),
     }
     unknown = [name for name in methods if name not in builders]
     if unknown or not methods:

@@ -1,8 +1,9 @@
 """Exact one-dimensional optimal transport of an equally weighted ensemble to its reweighting.
 
-In one dimension the optimal coupling (for any convex cost) between the uniform empirical
-measure of ``x[k]`` and the weighted one ``sum_l w_l delta_{x_l}`` is the monotone one: sort
-both, and the particle of rank r holds the quantiles u in [r/k, (r+1)/k] of the weighted measure.
+In one dimension an optimal coupling (for any convex cost; unique up to ties) between the
+uniform empirical measure of ``x[k]`` and the weighted one ``sum_l w_l delta_{x_l}`` is the
+monotone one: sort both, and the particle of rank r holds the quantiles u in [r/k, (r+1)/k] of
+the weighted measure.
 The ensemble transform particle filter (Reich 2013) moves each particle to the barycentre of what
 the coupling sends it, k times the integral of the weighted quantile function Q over its
 interval:
@@ -42,7 +43,8 @@ def monotone_transport(values: Array, log_weights: Array, active: Array | None =
     rank = jnp.arange(num)
     centred = jnp.where(rank < count, values[order] - centre, 0.0)
     sorted_weights = jnp.where(rank < count, weights[order], 0.0)
-    upper = jnp.where(rank >= count - 1, 1.0, jnp.cumsum(sorted_weights))  # Q's knots
+    # Q's knots: sorted (an ulp over 1 would unsort them) and exactly 1 from the last active one.
+    upper = jnp.where(rank >= count - 1, 1.0, jnp.minimum(jnp.cumsum(sorted_weights), 1.0))
     integral = jnp.cumsum(sorted_weights * centred)  # G at the knots
 
     def quantile_integral(u):  # G(u): the knot at or after u, less the linear piece beyond u
