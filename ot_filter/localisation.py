@@ -60,6 +60,8 @@ __all__ = [
     "local_windows",
     "localisation",
     "points",
+    "check_localisation",
+    "check_localised_analysis",
     "ring",
     "taper_weights",
 ]
@@ -223,6 +225,29 @@ def localisation(geometry: Geometry, radius, taper: str = "gaspari_cohn", max_ra
         neighbours, neighbour_distances = _neighbour_lists(geometry, taper_support(max_radius, taper))
     return Localisation(geometry, radius, jnp.asarray(neighbours),
                         jnp.asarray(neighbour_distances), taper)
+
+
+def check_localisation(localisation) -> Localisation:
+    """A localised update's ``localisation`` argument, at build time."""
+    if not isinstance(localisation, Localisation):
+        raise TypeError(f"localisation must be built by ot_filter.localisation(...), got "
+                        f"{type(localisation).__name__}")
+    return localisation
+
+
+def check_localised_analysis(name: str, localisation: Localisation, model, n: int, m: int) -> None:
+    """What a localised analysis of ``n`` state coordinates and ``m`` observation components
+    (``name``: the update) needs: a model with additive Gaussian noise, and a localisation built
+    from a geometry of these sizes."""
+    if not model.has_gaussian_observation_noise:
+        raise ValueError(f"{name} needs a model with additive Gaussian observation noise: give "
+                         "model.observation_function and model.observation_noise_cov")
+    if localisation.neighbours.shape[0] != n:
+        raise ValueError(f"the localisation has {localisation.neighbours.shape[0]} state "
+                         f"coordinates, the particles {n}: build it from this model's geometry")
+    if localisation.geometry.observation_positions.shape[0] != m:
+        raise ValueError(f"the localisation has {localisation.geometry.observation_positions.shape[0]} "
+                         f"observation positions, the observation {m} components")
 
 
 def _neighbour_lists(geometry: Geometry, cutoff: float, chunk: int = 512):

@@ -36,7 +36,7 @@ from ot_filter.lib.static import bind
 from ot_filter.lib.transform import etkf_transform
 from ot_filter.lib.validation import check_int, check_number
 from ot_filter.lib.weights import active_first, active_mask, count_active
-from ot_filter.localisation import Localisation
+from ot_filter.localisation import Localisation, check_localisation, check_localised_analysis
 from ot_filter.model import StateSpaceModel
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
 from ot_filter.updates.enkf import MAX_ROTATED_PARTICLES, random_rotation, whitened_observations
@@ -71,9 +71,7 @@ def letkf(localisation: Localisation, inflation: float = 1.0, rotate: bool = Fal
       batch_size: analyse this many coordinates at a time (``lax.map``) instead of all at once;
         bounds the memory at O(batch_size N K). Static.
     """
-    if not isinstance(localisation, Localisation):
-        raise TypeError(f"localisation must be built by ot_filter.localisation(...), got "
-                        f"{type(localisation).__name__}")
+    check_localisation(localisation)
     if batch_size is not None:
         batch_size = check_int("batch_size", batch_size, minimum=1)
     settings = LETKFSettings(check_number("inflation", inflation, minimum=1.0), localisation)
@@ -88,15 +86,7 @@ def letkf_apply(settings: LETKFSettings, key: Array, state: UniformWeightsState,
     num_particles, n = particles.shape
     m = observation.shape[0]
     localisation = settings.localisation
-    if not model.has_gaussian_observation_noise:
-        raise ValueError("letkf needs a model with additive Gaussian observation noise: give "
-                         "model.observation_function and model.observation_noise_cov")
-    if localisation.neighbours.shape[0] != n:
-        raise ValueError(f"the localisation has {localisation.neighbours.shape[0]} state "
-                         f"coordinates, the particles {n}: build it from this model's geometry")
-    if localisation.geometry.observation_positions.shape[0] != m:
-        raise ValueError(f"the localisation has {localisation.geometry.observation_positions.shape[0]} "
-                         f"observation positions, the observation {m} components")
+    check_localised_analysis("letkf", localisation, model, n, m)
     if rotate and num_particles > MAX_ROTATED_PARTICLES:
         raise ValueError(f"letkf(rotate=True) needs num_particles <= {MAX_ROTATED_PARTICLES}")
     dtype = particles.dtype

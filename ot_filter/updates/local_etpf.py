@@ -37,20 +37,18 @@ from ot_filter.lib.monotone import monotone_transport
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number
 from ot_filter.lib.weights import active_mask, count_active
-from ot_filter.localisation import Localisation
+from ot_filter.localisation import Localisation, check_localisation, check_localised_analysis
 from ot_filter.model import StateSpaceModel, observed_noise_factors, whiten
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
+from ot_filter.updates.letkf import LETKFSettings
 
 Array = jax.Array
 
 __all__ = ["LocalETPFInfo", "LocalETPFSettings", "local_etpf", "local_etpf_apply"]
 
 
-class LocalETPFSettings(NamedTuple):
-    """The LETPF's numbers (traced: a vmap over inflation and radius is one program)."""
-
-    inflation: Array  # multiplicative inflation (>= 1) of the prior anomalies
-    localisation: Localisation  # taper, radius (traced) and neighbour lists
+# The LETKF's numbers, inflation and localisation (traced: a vmap over them is one program).
+LocalETPFSettings = LETKFSettings
 
 
 class LocalETPFInfo(NamedTuple):
@@ -70,9 +68,7 @@ def local_etpf(localisation: Localisation, inflation: float = 1.0, batch_size: i
       batch_size: transport this many coordinates at a time (``lax.map``); bounds the memory at
         O(batch_size N K). Static.
     """
-    if not isinstance(localisation, Localisation):
-        raise TypeError(f"localisation must be built by ot_filter.localisation(...), got "
-                        f"{type(localisation).__name__}")
+    check_localisation(localisation)
     if batch_size is not None:
         batch_size = check_int("batch_size", batch_size, minimum=1)
     settings = LocalETPFSettings(check_number("inflation", inflation, minimum=1.0), localisation)
@@ -86,15 +82,7 @@ def local_etpf_apply(settings: LocalETPFSettings, key: Array, state: UniformWeig
     n = particles.shape[1]
     m = observation.shape[0]
     localisation = settings.localisation
-    if not model.has_gaussian_observation_noise:
-        raise ValueError("local_etpf needs a model with additive Gaussian observation noise: give "
-                         "model.observation_function and model.observation_noise_cov")
-    if localisation.neighbours.shape[0] != n:
-        raise ValueError(f"the localisation has {localisation.neighbours.shape[0]} state "
-                         f"coordinates, the particles {n}: build it from this model's geometry")
-    if localisation.geometry.observation_positions.shape[0] != m:
-        raise ValueError(f"the localisation has {localisation.geometry.observation_positions.shape[0]} "
-                         f"observation positions, the observation {m} components")
+    check_localised_analysis("local_etpf", localisation, model, n, m)
     dtype = particles.dtype
     active = active_mask(state.log_weights)
     num_active = count_active(state.log_weights)
