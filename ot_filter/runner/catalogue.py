@@ -365,8 +365,8 @@ def _lorenz63_plot(options, groups, out):
 LORENZ96_LOCAL = dict(letkf_radius=4.0, ot_taper_radius=4.0, ot_state_radius=0.0, inflation=1.04, ot_iterations=64)
 # The LETKF-LETPF hybrid (``letkf_etpf``): the LETKF (LORENZ96_LOCAL's) on l^0.75, the localised
 # ensemble transform particle filter on l^0.25. On 16 truths with y = |x| every 0.2 the power
-# 0.15-0.35 gave 0.41-0.44 against the LETKF's 0.60; 0.5 lost track on some truths and 0.75 on
-# most (``benchmarks/results/ot_lorenz96/etpf_16/``).
+# 0.1-0.35 gave 0.41-0.44 against the LETKF's 0.60; 0.5 lost track on one truth and 0.75 on 14
+# of 16 (``benchmarks/results/ot_lorenz96/etpf_16/``).
 LORENZ96_ETPF_POWER = 0.25
 
 
