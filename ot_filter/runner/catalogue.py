@@ -363,11 +363,6 @@ def _lorenz63_plot(options, groups, out):
 # steps and the RMSE doubled); a loss bound that restarted it still left RMSE 0.301
 # (``benchmarks/ot_lorenz96.py`` measures them).
 LORENZ96_LOCAL = dict(letkf_radius=4.0, ot_taper_radius=4.0, ot_state_radius=0.0, inflation=1.04, ot_iterations=64)
-# The LETKF-LETPF hybrid (``letkf_etpf``): the LETKF (LORENZ96_LOCAL's) on l^0.75, the localised
-# ensemble transform particle filter on l^0.25. On 16 truths with y = |x| every 0.2 the power
-# 0.1-0.35 gave 0.41-0.44 against the LETKF's 0.60; 0.5 lost track on one truth and 0.75 on 14
-# of 16 (``benchmarks/results/ot_lorenz96/etpf_16/``).
-LORENZ96_ETPF_POWER = 0.25
 
 
 def lorenz96_local_ot(model, num_iterations, taper: str = "gaspari_cohn", inflation: float | None = None,
@@ -389,7 +384,7 @@ def lorenz96_update(method: str, model=None):
     """Lorenz-96 updates: DAPPER's square-root EnKF with inflation 1.02 (DAPPER tunes 1.013 for
     N = 24), the LETKF, the regularised SIR of the Lorenz-63 benchmark, the OT filter with the
     1024 -> 64 schedule (the chapter's sizes), the localised OT filter (``LORENZ96_LOCAL``) and
-    the LETKF-LETPF hybrid (``LORENZ96_ETPF_POWER``). The LETKF, the localised OT filter and the
+    the LETKF-LETPF hybrid (``experiments._common.letkf_etpf``). The LETKF, the localised OT filter and the
     hybrid need the ``model``'s geometry."""
     import ot_filter as otf
     from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS
@@ -412,9 +407,9 @@ def lorenz96_update(method: str, model=None):
     if method == "local_ot":
         return lorenz96_local_ot(model, local["ot_iterations"], warm_start=False)
     if method == "letkf_etpf":
-        localisation = otf.localisation(model.geometry, local["letkf_radius"])
-        return otf.split_likelihood([otf.letkf(localisation, inflation=local["inflation"]), otf.local_etpf(localisation)],
-                                    [1.0 - LORENZ96_ETPF_POWER, LORENZ96_ETPF_POWER])
+        from ot_filter.experiments._common import letkf_etpf
+
+        return letkf_etpf(otf.localisation(model.geometry, local["letkf_radius"]), inflation=local["inflation"])
     raise ValueError(f"unknown Lorenz-96 method {method!r}")
 
 
