@@ -36,7 +36,7 @@ from ot_filter.lib.ensemble import inflate
 from ot_filter.lib.monotone import monotone_transport
 from ot_filter.lib.static import bind
 from ot_filter.lib.validation import check_int, check_number
-from ot_filter.lib.weights import active_mask, count_active
+from ot_filter.lib.weights import active_mask, count_active, effective_sample_size
 from ot_filter.localisation import Localisation, check_localisation, check_localised_analysis
 from ot_filter.model import StateSpaceModel, observed_noise_factors, whiten
 from ot_filter.updates.base import BayesUpdate, UniformWeightsState, uniform_weights_init
@@ -64,7 +64,7 @@ def local_etpf(localisation: Localisation, inflation: float = 1.0, batch_size: i
       localisation: ``ot_filter.localisation(model.geometry, radius)``: the taper of the local
         log-likelihoods; its radius may be traced.
       inflation: multiplicative inflation (>= 1) of the prior anomalies; may be traced. Leave it
-        1 behind an LETKF that inflates (``split_likelihood``).
+        1 after an LETKF that inflates (``split_likelihood``).
       batch_size: transport this many coordinates at a time (``lax.map``); bounds the memory at
         O(batch_size N K). Static.
     """
@@ -96,8 +96,7 @@ def local_etpf_apply(settings: LocalETPFSettings, key: Array, state: UniformWeig
     def analyse(inputs):
         neighbours, weight, column = inputs  # [K], [K], [N]
         log_weights = jnp.where(active, log_likelihood[:, neighbours] @ weight, -jnp.inf)
-        normalised = jnp.exp(log_weights - jax.nn.logsumexp(log_weights))
-        effective = 1.0 / jnp.sum(normalised**2) / jnp.asarray(num_active, dtype)
+        effective = effective_sample_size(log_weights) / jnp.asarray(num_active, dtype)
         return monotone_transport(column, log_weights, active), effective
 
     inputs = (localisation.neighbours, taper, particles.T)

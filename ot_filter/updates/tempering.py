@@ -75,9 +75,10 @@ def split_likelihood(updates: Sequence[Any], powers: Sequence[float]) -> BayesUp
       updates: Bayes updates (``BayesUpdate``-like NamedTuples of ``init`` and ``apply``); each
         step's output particles and log-weights are the next one's state. Only an update that
         weighs (``sir``) reads the weights; ``enkf``, ``letkf`` and ``local_etpf`` read them
-        as the active-particle mask only and treat the particles as equally weighted, so an update that may leave unequal weights must come last (and, in a filter,
-        a step that does not read them must not follow it at the next time either: use
-        ``sir`` with resampling there).
+        as the active-particle mask only and treat the particles as equally weighted, so an
+        update that may leave unequal weights must come last (and, in a filter, a step that
+        does not read them must not follow it at the next time either: use ``sir`` with
+        resampling there).
       powers: one positive number per update, summing to 1; may be traced (a vmap over the split
         is one program).
 
