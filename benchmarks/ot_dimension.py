@@ -1,15 +1,15 @@
 """OT at scale: the static and dynamic examples over the state dimension, against EXACT posteriors.
 
     PYTHONPATH=. python benchmarks/ot_dimension.py [--dims 2,5,10,20,50] [--part static|dynamic|both]
-        [--methods enkf,letkf,sir,ot,local_ot,local_etpf,letkf_etpf]
+        [--methods enkf,letkf,sir,ot,local_ot,local_etpf,letkf_etpf,local_ot_etpf]
 
 A dynamic run merges its rows by n into the saved JSON (a later n added to earlier ones).
 
 Every method on the same priors / truths: EnKF, LETKF (radius 0: told the coordinates are
 independent), SIR, the global OT update, the localised one (radius 0) and the localised ETPF
 (radius 0: each coordinate moved by the exact 1-D transport to its own importance weights, no
-network) and its hybrid with the LETKF (``letkf_etpf``: the LETKF on l^0.75, the LETPF on
-l^0.25). Metrics
+network) and its hybrids, the LETKF (``letkf_etpf``) or the localised OT update
+(``local_ot_etpf``) on l^0.75, then the LETPF on l^0.25. Metrics
 (``metrics.compare_to_product_grid``): W1 of each coordinate's marginal to the exact one,
 averaged over coordinates and its worst coordinate, and the joint sliced W2 and energy distance
 to N exact samples, each beside its Monte-Carlo floor (N exact samples scored the same way).
@@ -42,9 +42,10 @@ from ot_filter.experiments._common import write_text_atomic  # noqa: E402
 from ot_filter.experiments.dynamic_example import run_dynamic_example  # noqa: E402
 from ot_filter.experiments.static_example import run_static_example  # noqa: E402
 
-METHODS = ("enkf", "letkf", "sir", "ot", "local_ot", "local_etpf", "letkf_etpf")
+METHODS = ("enkf", "letkf", "sir", "ot", "local_ot", "local_etpf", "letkf_etpf", "local_ot_etpf")
 LABELS = {"enkf": "EnKF", "letkf": "LETKF (r = 0)", "sir": "SIR", "ot": "OT (global)", "local_ot": "OT (localised)",
-          "local_etpf": "LETPF (r = 0, exact 1-D transport)", "letkf_etpf": "LETKF + LETPF (l^0.25)"}
+          "local_etpf": "LETPF (r = 0, exact 1-D transport)", "letkf_etpf": "LETKF + LETPF (l^0.25)",
+          "local_ot_etpf": "OT (localised) + LETPF (l^0.25)"}
 METRICS = ("w1", "w1_max", "sliced_w2", "energy")
 
 

@@ -45,6 +45,11 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
   the power 1 - A, then the catalogue's ``local_ot`` (inflation 1: the LETKF inflated) on the
   rest (``otf.split_likelihood``), as ``etpf_after:A`` with the neural map in place of the exact
   transport.
+- ``ot_etpf:A``: the catalogue's neural ``local_ot`` (its layer inflated as the LETKF is) on the
+  likelihood to the power 1 - A, then the LETPF on the rest: the hybrid ``etpf_after:A`` with the
+  neural map in place of its LETKF step, so that the step that sees most of the likelihood keeps
+  a non-Gaussian (e.g. bimodal) forecast. ``ot_letkf:A``: its control, the LETKF as the second
+  step (what the transport adds).
 - ``local_ot_warm``: the catalogue's windows and layer, with networks warm-started from step to
   step (the 256 -> 64 schedule), T's learning rate 1e-4 and a loss bound of 0.02 that restarts
   them when they drift.
@@ -75,7 +80,7 @@ import numpy as np  # noqa: E402
 
 import ot_filter as otf  # noqa: E402
 from ot_filter import metrics  # noqa: E402
-from ot_filter.experiments._common import simulate_truths, write_text_atomic  # noqa: E402
+from ot_filter.experiments._common import diverged_flags, simulate_truths, write_text_atomic  # noqa: E402
 from ot_filter.models import lorenz96  # noqa: E402
 from ot_filter.runner.catalogue import LORENZ96_LOCAL, cell_key, lorenz96_local_ot, lorenz96_update  # noqa: E402
 
@@ -147,6 +152,12 @@ def build(method: str, model):
             [otf.letkf(otf.localisation(model.geometry, radius), inflation=local["inflation"]),
              lorenz96_local_ot(model, local["ot_iterations"], inflation=1.0, warm_start=False, **options)],
             [1.0 - float(alpha), float(alpha)])
+    if method.startswith("ot_etpf:") or method.startswith("ot_letkf:"):  # ot_etpf:A / ot_letkf:A
+        alpha = float(method.split(":")[1])
+        localisation = otf.localisation(model.geometry, radius)
+        second = otf.local_etpf(localisation) if method.startswith("ot_etpf") else otf.letkf(localisation)
+        return otf.split_likelihood(
+            [lorenz96_local_ot(model, local["ot_iterations"], warm_start=False), second], [1.0 - alpha, alpha])
     if method == "letkf_step":
         return otf.letkf(otf.localisation(model.geometry, radius, taper="step"), inflation=local["inflation"])
     if method in ("layer", "layer_step"):  # a loss bound no training meets: every step is the layer alone
@@ -184,9 +195,8 @@ def run(method, model, keys, observations, num_particles):
     def filters(keys, observations):
         def one(key, y):
             result = otf.run_filter(key, model, update, y, num_particles, save_every=0)
-            steps = getattr(result.info, "steps", (result.info,))  # split_likelihood: each step's info
-            flags = [step.diverged for step in steps if hasattr(step, "diverged")]
-            return result.mean, (jax.numpy.zeros(y.shape[0], bool) if not flags else jnp.any(jnp.stack(flags), axis=0))
+            flags = diverged_flags(result.info)  # split_likelihood: any of its steps
+            return result.mean, (jnp.zeros(y.shape[0], bool) if flags is None else flags)
         return jax.vmap(one)(keys, observations)
 
     compiled = filters.lower(keys, observations).compile()

@@ -38,7 +38,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.16"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.17"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -66,6 +66,8 @@ __version__ = "0.2.16"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       0.2.15: lorenz96 takes observation_operator="abs" (y = |x| + noise)
 #                       0.2.16: local_etpf, split_likelihood and tempered_model; the runner's lorenz96 offers
 #                       letkf_etpf (the LETKF on l^0.75, the localised ETPF on l^0.25)
+#                       0.2.17: the runner's lorenz96 and the experiments offer local_ot_etpf (the localised
+#                       OT update on l^0.75, the localised ETPF on l^0.25)
 
 __all__ = [
     "BayesUpdate",

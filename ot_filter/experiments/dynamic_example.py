@@ -35,7 +35,7 @@ import optax
 
 from ot_filter.experiments import processes
 from ot_filter.experiments._common import (
-    ALL_METHODS, METHODS, compile_and_run, make_updates, save_figure, simulate_truths, stats,
+    ALL_METHODS, METHODS, compile_and_run, diverged_flags, make_updates, save_figure, simulate_truths, stats,
 )
 from ot_filter.filtering import run_filter
 from ot_filter.metrics import compare_to_product_grid, mmd, mmd_to_product, product_grid_sample
@@ -253,7 +253,7 @@ def _exact_summary(comparison: dict, first_step: int, prefix: str = "") -> dict:
     }
 
 
-def _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, info=None):
+def _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, diverged=None):
     average = distances[:, first_step:].mean(axis=1)
     summary = {
         "mmd_average": stats(average),
@@ -267,8 +267,8 @@ def _method_summary(distances, positive, first_step, timing, num_steps, num_simu
         "seconds_per_step": timing["run_s"] / (num_steps * num_simulations),
         "all_finite": bool(np.all(np.isfinite(distances))),
     }
-    if info is not None and hasattr(info, "diverged"):
-        summary["diverged_steps"] = int(np.asarray(info.diverged).sum())
+    if diverged is not None:  # diverged_flags of the method's info
+        summary["diverged_steps"] = int(np.asarray(diverged).sum())
     return summary
 
 
@@ -365,7 +365,8 @@ def run_dynamic_example(
         particles, log_weights, info, timing = {**filtered_here, **filtered_there}[name]
         distances = mmd_to_exact(particles, log_weights, reference, bandwidth, standardise)
         positive = positive_mass(particles, log_weights)
-        summary[name] = _method_summary(distances, positive, first_step, timing, num_steps, num_simulations, info)
+        summary[name] = _method_summary(distances, positive, first_step, timing, num_steps, num_simulations,
+                                        diverged_flags(info))
         comparison = exact_comparison(compare_key, particles, log_weights, reference)
         summary[name]["exact"] = _exact_summary(comparison, first_step)
         arrays[f"{name}_w1"] = comparison["w1"].mean(axis=2)  # [S, T], over coordinates
@@ -492,7 +493,9 @@ def run_particle_sweep(
             particles, log_weights, info, timing = filter_simulations(
                 method_key, model, update, observations, max(counts), num_active=np.asarray(counts)
             )
-            per_count = [(particles[i], log_weights[i], getattr(info, "diverged", None)) for i in range(len(counts))]
+            diverged = diverged_flags(info)
+            per_count = [(particles[i], log_weights[i], None if diverged is None else diverged[i])
+                         for i in range(len(counts))]
             timings[name] = timing
         else:
             per_count, timings[name] = [], {"compile_s": 0.0, "run_s": 0.0}
@@ -500,7 +503,7 @@ def run_particle_sweep(
                 particles, log_weights, info, timing = filter_simulations(
                     method_key, model, update, observations, count
                 )
-                per_count.append((particles, log_weights, getattr(info, "diverged", None)))
+                per_count.append((particles, log_weights, diverged_flags(info)))
                 for field in ("compile_s", "run_s"):
                     timings[name][field] += timing[field]
         for count, (particles, log_weights, diverged) in zip(counts, per_count):

@@ -118,7 +118,7 @@ def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=Fa
 
 
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
-          "letkf_etpf": "LETKF + LETPF (l^0.25)",
+          "letkf_etpf": "LETKF + LETPF (l^0.25)", "local_ot_etpf": "OT, localised + LETPF (l^0.25)",
           "local_ot": "OT, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
           "amortised_distilled": "amortised OT (a), distilled map",
           "local_amortised": "OT, localised, offline map (a)", "local_amortised_warm": "OT, localised, offline map (b)",
@@ -384,8 +384,9 @@ def lorenz96_update(method: str, model=None):
     """Lorenz-96 updates: DAPPER's square-root EnKF with inflation 1.02 (DAPPER tunes 1.013 for
     N = 24), the LETKF, the regularised SIR of the Lorenz-63 benchmark, the OT filter with the
     1024 -> 64 schedule (the chapter's sizes), the localised OT filter (``LORENZ96_LOCAL``) and
-    the LETKF-LETPF hybrid (``experiments._common.letkf_etpf``). The LETKF, the localised OT filter and the
-    hybrid need the ``model``'s geometry."""
+    the hybrids that finish with the LETPF on a quarter of the likelihood (``experiments._common.then_etpf``)
+    after the LETKF (``letkf_etpf``) or after the localised OT filter (``local_ot_etpf``). The
+    localised updates need the ``model``'s geometry."""
     import ot_filter as otf
     from ot_filter.experiments.twin_configurations import TWIN_CONFIGURATIONS
 
@@ -410,6 +411,11 @@ def lorenz96_update(method: str, model=None):
         from ot_filter.experiments._common import letkf_etpf
 
         return letkf_etpf(otf.localisation(model.geometry, local["letkf_radius"]), inflation=local["inflation"])
+    if method == "local_ot_etpf":
+        from ot_filter.experiments._common import then_etpf
+
+        return then_etpf(lorenz96_local_ot(model, local["ot_iterations"], warm_start=False),
+                         otf.localisation(model.geometry, local["letkf_radius"]))
     raise ValueError(f"unknown Lorenz-96 method {method!r}")
 
 
@@ -558,7 +564,7 @@ EXPERIMENTS = {
                  methods=("enkf", "letkf", "sir", "ot", "local_ot")),
             dict(particles=(50,), steps=100, simulations=2, block=2,
                  methods=("enkf", "letkf", "sir", "ot", "local_ot")),
-            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot", "letkf_etpf"), _lorenz96_cell, _lorenz96_plot,
+            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot", "letkf_etpf", "local_ot_etpf"), _lorenz96_cell, _lorenz96_plot,
         ),
         Experiment(
             "fpf-bimodal", "continuous time: feedback particle filter gains on dY = X^2 dt + dW",
