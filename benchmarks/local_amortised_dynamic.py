@@ -29,7 +29,7 @@ from local_amortised_l96 import offline_map
 
 import ot_filter as otf
 from ot_filter.amortised import collect_forecasts
-from ot_filter.experiments._common import simulate_truths, write_text_atomic
+from ot_filter.experiments._common import diverged_flags, simulate_truths, write_text_atomic
 from ot_filter.experiments.dynamic_example import dynamic_model, exact_comparison, exact_floor, exact_posteriors
 from ot_filter.localisation import local_windows
 
@@ -116,7 +116,7 @@ def main():
 
         def one(key, y, update=update):
             result = otf.run_filter(key, model, update, y, PARTICLES, save_every=1)
-            diverged = getattr(result.info, "diverged", None)
+            diverged = diverged_flags(result.info)
             return result.particles, result.log_weights, jnp.zeros(y.shape[0], bool) if diverged is None else diverged
 
         run = jax.jit(jax.vmap(one))

@@ -80,7 +80,7 @@ import numpy as np  # noqa: E402
 
 import ot_filter as otf  # noqa: E402
 from ot_filter import metrics  # noqa: E402
-from ot_filter.experiments._common import diverged_flags, simulate_truths, write_text_atomic  # noqa: E402
+from ot_filter.experiments._common import diverged_flags, simulate_truths, then_etpf, write_text_atomic  # noqa: E402
 from ot_filter.models import lorenz96  # noqa: E402
 from ot_filter.runner.catalogue import LORENZ96_LOCAL, cell_key, lorenz96_local_ot, lorenz96_update  # noqa: E402
 
@@ -153,11 +153,15 @@ def build(method: str, model):
              lorenz96_local_ot(model, local["ot_iterations"], inflation=1.0, warm_start=False, **options)],
             [1.0 - float(alpha), float(alpha)])
     if method.startswith("ot_etpf:") or method.startswith("ot_letkf:"):  # ot_etpf:A / ot_letkf:A
-        alpha = float(method.split(":")[1])
-        localisation = otf.localisation(model.geometry, radius)
-        second = otf.local_etpf(localisation) if method.startswith("ot_etpf") else otf.letkf(localisation)
-        return otf.split_likelihood(
-            [lorenz96_local_ot(model, local["ot_iterations"], warm_start=False), second], [1.0 - alpha, alpha])
+        fields = method.split(":")[1:]
+        if len(fields) != 1:
+            raise ValueError(f"unknown method {method!r}: ot_etpf:A or ot_letkf:A")
+        alpha = float(fields[0])
+        localisation = otf.localisation(model.geometry, local["letkf_radius"])
+        first = lorenz96_local_ot(model, local["ot_iterations"], warm_start=False)
+        if method.startswith("ot_etpf"):  # the runner's local_ot_etpf when A = ETPF_POWER
+            return then_etpf(first, localisation, alpha)
+        return otf.split_likelihood([first, otf.letkf(localisation)], [1.0 - alpha, alpha])
     if method == "letkf_step":
         return otf.letkf(otf.localisation(model.geometry, radius, taper="step"), inflation=local["inflation"])
     if method in ("layer", "layer_step"):  # a loss bound no training meets: every step is the layer alone

@@ -44,7 +44,7 @@ import jax
 import numpy as np
 import optax
 
-from ot_filter.experiments._common import compile_and_run, save_figure, simulate_truths, stats
+from ot_filter.experiments._common import compile_and_run, diverged_flags, save_figure, simulate_truths, stats
 from ot_filter.filtering import run_filter
 from ot_filter.models import lorenz63
 from ot_filter.updates import enkf, ot, sir
@@ -145,7 +145,7 @@ def run_lorenz63(
         def one(k, y, update=update, is_reference=is_reference):
             result = run_filter(k, filter_model, update, y, reference_particles if is_reference else num_particles,
                                 save_every=0 if is_reference else save_every, progress=progress)
-            return result.mean, result.particles, getattr(result.info, "diverged", None)
+            return result.mean, result.particles, diverged_flags(result.info)
 
         (mean, particles, diverged), timing = compile_and_run(jax.vmap(one), keys, observations)
         mse = np.mean((mean - np.asarray(states)) ** 2, axis=-1)  # [S, T]

@@ -564,7 +564,8 @@ EXPERIMENTS = {
                  methods=("enkf", "letkf", "sir", "ot", "local_ot")),
             dict(particles=(50,), steps=100, simulations=2, block=2,
                  methods=("enkf", "letkf", "sir", "ot", "local_ot")),
-            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot", "letkf_etpf", "local_ot_etpf"), _lorenz96_cell, _lorenz96_plot,
+            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot", "letkf_etpf", "local_ot_etpf"), _lorenz96_cell,
+            _lorenz96_plot,
         ),
         Experiment(
             "fpf-bimodal", "continuous time: feedback particle filter gains on dY = X^2 dt + dW",
