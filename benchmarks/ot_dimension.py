@@ -2,6 +2,7 @@
 
     PYTHONPATH=. python benchmarks/ot_dimension.py [--dims 2,5,10,20,50] [--part static|dynamic|both]
         [--methods enkf,letkf,sir,ot,local_ot,local_etpf,letkf_etpf,local_ot_etpf]
+        (also ``ot_avgK`` / ``local_ot_avgK``: K trainings averaged, ``averaged_maps``)
 
 A dynamic run merges its rows by n into the saved JSON (a later n added to earlier ones).
 
@@ -47,6 +48,20 @@ LABELS = {"enkf": "EnKF", "letkf": "LETKF (r = 0)", "sir": "SIR", "ot": "OT (glo
           "local_etpf": "LETPF (r = 0, exact 1-D transport)", "letkf_etpf": "LETKF + LETPF (l^0.25)",
           "local_ot_etpf": "OT (localised) + LETPF (l^0.25)"}
 METRICS = ("w1", "w1_max", "sliced_w2", "energy")
+
+
+def _label(name):
+    """A method's column label; ``<method>_avgK`` (``averaged_maps``) is K trainings averaged."""
+    base, _, count = name.rpartition("_avg")
+    if base in LABELS and count.isdigit():
+        return f"{LABELS[base]}, {count} trainings averaged"
+    return LABELS.get(name, name)
+
+
+def _methods(rows):
+    """The methods the rows hold: the default list's order, then any others (e.g. ``local_ot_avg3``)."""
+    present = {key for row in rows for key in row if key not in ("dim", "seconds", "floor")}
+    return [n for n in METHODS if n in present] + sorted(present - set(METHODS))
 
 
 def static_rows(dims, seeds, methods=METHODS):
@@ -147,10 +162,10 @@ def _table(title, rows, extra=None):
     for metric, label in (("w1", "W1 per coordinate (mean over coordinates)"),
                           ("w1_max", "W1 of the worst coordinate"),
                           ("sliced_w2", "sliced W2 (joint)"), ("energy", "energy distance (joint)")):
-        lines += [f"### {label}", "", "| n | " + " | ".join(LABELS[n] for n in METHODS) + " | floor (N exact) |",
-                  "|--:|" + "--:|" * (len(METHODS) + 1)]
+        lines += [f"### {label}", "", "| n | " + " | ".join(_label(n) for n in _methods(rows)) + " | floor (N exact) |",
+                  "|--:|" + "--:|" * (len(_methods(rows)) + 1)]
         for row in rows:
-            lines.append(f"| {row['dim']} | " + " | ".join(_cell(_entry(row, n, metric)) for n in METHODS)
+            lines.append(f"| {row['dim']} | " + " | ".join(_cell(_entry(row, n, metric)) for n in _methods(rows))
                          + f" | {_cell(row['floor'][metric])} |")
         lines.append("")
     if extra:
@@ -159,14 +174,21 @@ def _table(title, rows, extra=None):
 
 
 def _dynamic_extra(rows):
+    """The published metric, and each trained method's seconds a step and fallen-back steps."""
+    methods = _methods(rows)
+    trained = [n for n in methods if n == "ot" or "local_ot" in n or n.startswith("ot_")]
+
+    def per_method(row, field, fmt):
+        return ", ".join(fmt(row[n][field]) if n in row and field in row[n] else "–" for n in trained)
+
     lines = ["### The published metric (standardised MMD, bandwidth 4) and cost", "",
-             "| n | " + " | ".join(LABELS[n] for n in METHODS) + " | OT s/step (global, local) | diverged steps (global, local) |",
-             "|--:|" + "--:|" * (len(METHODS) + 2)]
+             "| n | " + " | ".join(_label(n) for n in methods)
+             + f" | s/step ({', '.join(trained)}) | diverged steps ({', '.join(trained)}) |",
+             "|--:|" + "--:|" * (len(methods) + 2)]
     for row in rows:
-        ot, local = row.get("ot", {}), row.get("local_ot", {})
-        lines.append(f"| {row['dim']} | " + " | ".join(_cell(_entry(row, n, "published_mmd")) for n in METHODS)
-                     + f" | {ot.get('seconds_per_step', float('nan')):.3f}, {local.get('seconds_per_step', float('nan')):.3f}"
-                     + f" | {ot.get('diverged_steps', '–')}, {local.get('diverged_steps', '–')} |")
+        lines.append(f"| {row['dim']} | " + " | ".join(_cell(_entry(row, n, "published_mmd")) for n in methods)
+                     + f" | {per_method(row, 'seconds_per_step', lambda v: f'{v:.3f}')}"
+                     + f" | {per_method(row, 'diverged_steps', str)} |")
     return lines + [""]
 
 
@@ -181,10 +203,10 @@ def plot(results, path):
     for ax, part in zip(axes[0], parts):
         rows = results[part]
         dims = [r["dim"] for r in rows]
-        for name in METHODS:
+        for name in _methods(rows):
             have = [r for r in rows if name in r]
             ax.errorbar([r["dim"] for r in have], [r[name]["w1"]["mean"] for r in have],
-                        [2 * r[name]["w1"]["stderr"] for r in have], marker="o", capsize=3, label=LABELS[name])
+                        [2 * r[name]["w1"]["stderr"] for r in have], marker="o", capsize=3, label=_label(name))
         # markers too: a sweep with one n still shows its floor
         ax.plot(dims, [r["floor"]["w1"]["mean"] for r in rows], "k--", marker="_", markersize=14,
                 label="N exact samples (floor)")

@@ -2,7 +2,8 @@
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
 returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``local_etpf``, ``ot``, ``local_ot``, and ``amortised_ot`` with a map trained offline by
-``amortised``; ``split_likelihood`` chains them on powers of the likelihood);
+``amortised``; ``split_likelihood`` chains them on powers of the likelihood; ``averaged_maps``
+averages several trainings of a map);
 ``localisation`` describes where the state and observations lie (``ring``, ``points``) and builds
 the taper and the local windows; ``run_filter`` composes them into a
 whole-trajectory filter in one ``lax.scan``; ``kalman_filter`` is the exact reference. ``continuous`` holds the continuous-time part
@@ -18,6 +19,7 @@ from ot_filter.model import StateSpaceModel, simulate, simulate_observations
 from ot_filter.sharding import particle_sharding
 from ot_filter.updates import (
     BayesUpdate,
+    averaged_maps,
     EnKFInfo,
     LETKFInfo,
     OTInfo,
@@ -38,7 +40,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.17"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.18"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -68,6 +70,8 @@ __version__ = "0.2.17"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       letkf_etpf (the LETKF on l^0.75, the localised ETPF on l^0.25)
 #                       0.2.17: the runner's lorenz96 and the experiments offer local_ot_etpf (the localised
 #                       OT update on l^0.75, the localised ETPF on l^0.25)
+#                       0.2.18: averaged_maps (K trainings of a map, their outputs averaged); the experiments
+#                       offer <method>_avg<K> for ot and local_ot
 
 __all__ = [
     "BayesUpdate",
@@ -87,6 +91,7 @@ __all__ = [
     "StateSpaceModel",
     "amortised",
     "amortised_ot",
+    "averaged_maps",
     "continuous",
     "enkf",
     "kalman_filter",

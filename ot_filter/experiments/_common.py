@@ -15,7 +15,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ot_filter.model import simulate
 from ot_filter.localisation import local_windows, localisation
-from ot_filter.updates import SplitLikelihoodInfo, enkf, letkf, local_etpf, ot, sir, split_likelihood
+from ot_filter.updates import SplitLikelihoodInfo, averaged_maps, enkf, letkf, local_etpf, ot, sir, split_likelihood
 from ot_filter.updates.local_ot import local_ot
 
 METHODS = ("enkf", "sir", "ot")
@@ -30,6 +30,10 @@ ALL_METHODS = ("enkf", "letkf", "sir", "ot", "local_ot", "local_etpf", "letkf_et
 # LETKF's 0.60; 0.5 lost track on one truth and 0.75 on 14 of 16
 # (``benchmarks/results/ot_lorenz96/etpf_16/``). ``local_ot_etpf`` takes it untuned (0.424).
 ETPF_POWER = 0.25
+# ``<method>_avg<K>`` (``ot`` or ``local_ot``, e.g. ``local_ot_avg3``): that method trained K times
+# with independent keys, the transported particles averaged (``averaged_maps``); not a default.
+AVERAGEABLE = ("ot", "local_ot")
+_AVERAGED = re.compile(r"^(?P<method>[a-z_]+)_avg(?P<count>[1-9][0-9]*)$")
 
 
 def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: dict | None = None,
@@ -37,7 +41,8 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
     """``{name: update}`` for the named methods; OT gets ``ot_defaults`` updated by ``ot_options``
     (the localised OT update too). ``letkf``, ``local_ot`` and ``local_etpf`` need the ``model``
     (its geometry) and a localisation ``radius`` (a step taper for the LETKF and the LETPF, so
-    that all three see the same observations)."""
+    that all three see the same observations). ``ot_avgK`` and ``local_ot_avgK`` are ``ot`` and
+    ``local_ot`` trained K times with their own keys, the outputs averaged (``averaged_maps``)."""
     options = dict(ot_defaults or {})
     options.update(ot_options or {})
     local_options = {k: v for k, v in options.items() if k not in ("concavity_points", "prior_smoothing",
@@ -61,10 +66,23 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
             local_ot(local_windows(model.geometry, radius, state_radius), **local_options),
             localisation(model.geometry, max(radius, 1e-6), "step"))),
     }
+    for name in methods:
+        averaged = _AVERAGED.match(name)
+        if averaged and averaged["method"] in AVERAGEABLE:
+            builders[name] = partial(lambda base, count: averaged_maps(builders[base](), count),
+                                     averaged["method"], int(averaged["count"]))
     unknown = [name for name in methods if name not in builders]
     if unknown or not methods:
-        raise ValueError(f"methods must be a non-empty subset of {list(builders)}, got {list(methods)}")
+        raise ValueError(f"methods must be a non-empty subset of {list(builders)} (or ot_avgK, local_ot_avgK: "
+                         f"K trainings averaged), got {list(methods)}")
     return {name: builders[name]() for name in methods}
+
+
+def methods_present(names) -> list:
+    """The method names among ``names`` in ``ALL_METHODS``' order, then the others (``<method>_avgK``)
+    in theirs: what a figure or table of a run shows."""
+    names = list(names)
+    return [m for m in ALL_METHODS if m in names] + [m for m in names if m not in ALL_METHODS and _AVERAGED.match(m)]
 
 
 def diverged_flags(info):

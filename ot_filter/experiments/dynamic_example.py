@@ -35,7 +35,7 @@ import optax
 
 from ot_filter.experiments import processes
 from ot_filter.experiments._common import (
-    ALL_METHODS, METHODS, compile_and_run, diverged_flags, make_updates, save_figure, simulate_truths, stats,
+    METHODS, compile_and_run, diverged_flags, make_updates, methods_present, save_figure, simulate_truths, stats,
 )
 from ot_filter.filtering import run_filter
 from ot_filter.metrics import compare_to_product_grid, mmd, mmd_to_product, product_grid_sample
@@ -562,7 +562,7 @@ def plot_dynamic_example(result: dict, out_dir: str, tag: str = "") -> list[str]
     and MMD vs time with standard-error bands. Returns the paths of the PNGs."""
     plt = _plt()
     summary, arrays = result["metrics"], result.get("arrays")  # no arrays: the MMD figure only
-    methods = [m for m in ALL_METHODS if m in summary]
+    methods = methods_present(summary)
     tag = tag or f"n{summary['dim']}_N{summary['num_particles']}"
     times = TIME_STEP * np.arange(1, summary["num_steps"] + 1)
     paths = []
@@ -616,7 +616,7 @@ def plot_sweep(result: dict, out_dir: str) -> str:
     by_dim = "dims" in summary
     xs = summary["dims"] if by_dim else summary["counts"]
     fig, ax = plt.subplots(figsize=(6.0, 4.2))
-    methods = [m for m in ALL_METHODS if m in summary["results"][str(xs[0])]]
+    methods = methods_present(summary["results"][str(xs[0])])
     for name in methods:
         mean = [summary["results"][str(x)][name]["mmd_average"]["mean"] for x in xs]
         err = [summary["results"][str(x)][name]["mmd_average"]["stderr"] for x in xs]

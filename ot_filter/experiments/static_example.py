@@ -28,7 +28,7 @@ import numpy as np
 from ot_filter import metrics
 from ot_filter.models import squared_observation
 from ot_filter.reference import squared_observation_posterior
-from ot_filter.experiments._common import ALL_METHODS, METHODS, compile_and_run, make_updates, save_figure, stats
+from ot_filter.experiments._common import METHODS, compile_and_run, make_updates, methods_present, save_figure, stats
 MODE_TOLERANCE = 0.1
 
 
@@ -202,7 +202,7 @@ def plot_static_example(result: dict, out_dir: str, tag: str = "") -> list[str]:
         fig.suptitle(f"OT consistency check ({label})")
         paths.append(save_figure(fig, out_dir, f"joint_{tag}.png"))
 
-    methods = [name for name in ALL_METHODS if f"{name}_posterior" in arrays]
+    methods = methods_present(name[:-len("_posterior")] for name in arrays if name.endswith("_posterior"))
     fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.6), squeeze=False, sharey=True)
     for ax, name in zip(axes[0], methods):
         samples = arrays[f"{name}_posterior"][0][:, 0]

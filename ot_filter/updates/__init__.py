@@ -1,5 +1,6 @@
 """Bayes updates: each a builder returning ``BayesUpdate(init, apply)``."""
 
+from ot_filter.updates.averaged_maps import AveragedMapsInfo, AveragedMapsState, AveragedMapsUpdate, averaged_maps
 from ot_filter.updates.base import (
     BayesUpdate,
     UniformWeightsState,
@@ -17,6 +18,9 @@ from ot_filter.updates.sir import SIRInfo, SIRSettings, SIRState, sir
 from ot_filter.updates.tempering import SplitLikelihoodInfo, SplitLikelihoodState, split_likelihood, tempered_model
 
 __all__ = [
+    "AveragedMapsInfo",
+    "AveragedMapsState",
+    "AveragedMapsUpdate",
     "BayesUpdate",
     "EnKFInfo",
     "EnKFSettings",
@@ -40,6 +44,7 @@ __all__ = [
     "SplitLikelihoodState",
     "UniformWeightsState",
     "active_mask",
+    "averaged_maps",
     "count_active",
     "enkf",
     "letkf",
