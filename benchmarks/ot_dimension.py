@@ -39,7 +39,7 @@ import time  # noqa: E402
 
 import jax  # noqa: E402
 
-from ot_filter.experiments._common import write_text_atomic  # noqa: E402
+from ot_filter.experiments._common import methods_present, write_text_atomic  # noqa: E402
 from ot_filter.experiments.dynamic_example import run_dynamic_example  # noqa: E402
 from ot_filter.experiments.static_example import run_static_example  # noqa: E402
 
@@ -59,9 +59,8 @@ def _label(name):
 
 
 def _methods(rows):
-    """The methods the rows hold: the default list's order, then any others (e.g. ``local_ot_avg3``)."""
-    present = {key for row in rows for key in row if key not in ("dim", "seconds", "floor")}
-    return [n for n in METHODS if n in present] + sorted(present - set(METHODS))
+    """The methods the rows hold, in the experiments' order (``methods_present``)."""
+    return methods_present({key for row in rows for key in row if key not in ("dim", "seconds", "floor")})
 
 
 def static_rows(dims, seeds, methods=METHODS):

@@ -17,7 +17,8 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
 - ``local_ot_avg:K`` or ``local_ot_avg:K:I``: K trainings of the catalogue's ``local_ot`` at every
   step (each member its own keys: other fresh networks and mini-batches), the K transported
   ensembles averaged particle by particle, which is the output of the average of the K maps
-  (``averaged``); I: the layer's inflation. The members' training noise partly cancels: on the
+  (``otf.averaged_maps``, since 0.2.18; the recorded runs used this benchmark's own loop over the
+  members, which counted a step as fallen back when any member fell back and averaged all K); I: the layer's inflation. The members' training noise partly cancels: on the
   static example three trainings of the global map took a quarter off W1
   (``docs/ot_at_scale.md``). K times the cost.
 - ``letkf:R:I``: the LETKF with a Gaspari-Cohn radius R and inflation I (the catalogue's: 4 and
@@ -72,8 +73,6 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 
-from typing import NamedTuple  # noqa: E402
-
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -88,33 +87,6 @@ METHODS = ("enkf", "letkf", "letkf_step", "sir", "layer", "layer_step", "local_o
            "local_ot_warm", "local_ot_perturbed")
 
 
-class AveragedState(NamedTuple):
-    log_weights: jax.Array  # the members' (uniform): run_filter's contract
-    members: tuple
-
-
-def averaged(update, count: int):
-    """``count`` copies of a particle-wise update (each particle transported, none resampled), each
-    applied with its own key; the posterior is the average of their outputs particle by particle.
-    Info: the first member's, with ``diverged`` where any member fell back."""
-    class Averaged(NamedTuple):
-        init: object
-        apply: object
-
-    def init(key, particles, model):
-        members = tuple(update.init(one, particles, model) for one in jax.random.split(key, count))
-        return AveragedState(members[0].log_weights, members)
-
-    def apply(key, state, particles, observation, model):
-        outputs = [update.apply(one, member, particles, observation, model)
-                   for one, member in zip(jax.random.split(key, count), state.members)]
-        members = tuple(output[1] for output in outputs)
-        info = outputs[0][2]._replace(diverged=jnp.any(jnp.stack([output[2].diverged for output in outputs])))
-        return sum(output[0] for output in outputs) / count, AveragedState(members[0].log_weights, members), info
-
-    return Averaged(init, apply)
-
-
 def build(method: str, model):
     local = LORENZ96_LOCAL
     radius = local["ot_taper_radius"]
@@ -124,7 +96,8 @@ def build(method: str, model):
     if method.startswith("local_ot_avg:"):  # local_ot_avg:K[:I]
         count, *rest = method.split(":")[1:]
         options = {"inflation": float(rest[0])} if rest and rest[0] else {}
-        return averaged(lorenz96_local_ot(model, local["ot_iterations"], warm_start=False, **options), int(count))
+        return otf.averaged_maps(lorenz96_local_ot(model, local["ot_iterations"], warm_start=False, **options),
+                                 int(count))
     if method.startswith("etpf:") or method.startswith("etpf_after:"):  # etpf[_after]:A[:I[:R]]
         alpha, *rest = (float(v) for v in method.split(":")[1:])
         if len(rest) > 2:
