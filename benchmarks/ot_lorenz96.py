@@ -160,7 +160,8 @@ def build(method: str, model):
         return lorenz96_local_ot(model, (256, 64), divergence_threshold=0.02, transport_learning_rate=1e-4)
     if method == "local_ot_perturbed":
         return otf.local_ot(otf.local_windows(model.geometry, 3.0, 1.0), num_iterations=(1024, 64),
-                            enkf_layer=True, inflation=local["inflation"])
+                            enkf_layer=True, inflation=local["inflation"],
+                            batch_size=local["ot_batch_size"])
     return lorenz96_update(method, model)
 
 

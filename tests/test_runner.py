@@ -287,3 +287,16 @@ def test_a_local_offline_map_is_trained_once_stored_in_the_run_and_reused_by_a_l
     with pytest.raises(Exception, match="trained for model 'dynamic-n2-local'"):
         run_experiment("dynamic", dict(small, dim=(3,), methods=("local_amortised",), maps=str(tmp_path / "wrong")),
                        str(tmp_path / "third"), progress=False, command=["test"], log=lambda line: None)
+
+
+def test_the_lorenz96_catalogue_keeps_the_batches_its_figures_were_measured_with():
+    """local_ot's default mini-batch is 512 local pairs (0.2.19); the Lorenz-96 catalogue's
+    localised filter keeps 128, with which every Lorenz-96 figure was measured, unless told."""
+    from ot_filter.runner.catalogue import lorenz96_local_ot
+    from ot_filter.updates.local_ot import local_update_parts
+
+    model = otf.models.lorenz96(dim=12)
+    default = otf.local_ot(otf.local_windows(model.geometry, 0.0))
+    assert local_update_parts(default)[1].batch_size == 512
+    assert local_update_parts(lorenz96_local_ot(model, 64))[1].batch_size == 128
+    assert local_update_parts(lorenz96_local_ot(model, 64, batch_size=256))[1].batch_size == 256

@@ -5,7 +5,7 @@ iterations on. analyse.py scores averages and mixtures of them.
 
     PYTHONPATH=.:benchmarks python mixture_run.py SEED 3 seedSEED.npz
 """
-import sys, time, json
+import sys, time
 import jax, jax.numpy as jnp, numpy as np
 sys.path[:0] = [".", "benchmarks"]
 from ot_training_curve import build
