@@ -75,7 +75,7 @@ def iterations(out: str, smoke: bool) -> None:
         two, _ = seconds_of_update(build(2 * count, **options), dim, repeats=2)
         per_iteration = max(two - one, 1e-9) / count
         overhead = max(one - count * per_iteration, 0.0)
-        # local_ot's sizes are its own (width 32, batch 128), never the rule's
+        # local_ot's sizes are its own (width 32, batch 128 then; 512 since 0.2.19), never the rule's
         used = global_sizes(dim, options) if label.startswith("ot") else None
         emit(out, {"part": "iterations", "case": label, "dim": dim, "options": options, "sizes": used,
                    "iterations_timed": [count, 2 * count], "seconds": [one, two],

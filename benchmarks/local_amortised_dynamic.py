@@ -89,8 +89,9 @@ def main():
     sizes = dict(width=64)
 
     def online():
+        # batches of 128: the recorded runs' (local_ot's default until 0.2.19)
         return otf.local_ot(windows, num_iterations=(1024, 64), potential_optimizer=optax.adamw(3e-4, weight_decay=1.0),
-                            **sizes)
+                            batch_size=128, **sizes)
 
     template = otf.local_ot(windows, batch_size=args.batch, potential_learning_rate=3e-4, **sizes)
     params, offline = offline_map(
@@ -111,7 +112,7 @@ def main():
             update = online()
         else:
             update = otf.local_ot(windows, num_iterations=0 if method == "a" else int(method[1:]), warm_start=False,
-                                  initial_map=params, **sizes)
+                                  initial_map=params, batch_size=128, **sizes)
         keys = jax.random.split(jax.random.key(16), args.simulations)
 
         def one(key, y, update=update):

@@ -198,7 +198,7 @@ def local_ot(
       local problem's size does not grow with n; ``ot()``'s size rule does not apply). Batches of
       512 rather than 128 (0.2.19): as for the global map, the pairs a step sees are the lever;
       on the static example (six training keys) every key is then under twice the floor at
-      n = 10, 20 and 50, at about twice the seconds of an update (``docs/ot_at_scale.md``).
+      n = 10, 20 and 50, at 3-4 times the seconds of an update on a CPU (``docs/ot_at_scale.md``).
     """
     if not isinstance(windows, LocalWindows):
         raise TypeError("windows must be a localisation.LocalWindows: "

@@ -6,6 +6,8 @@ One update (lambda_w = 0.4, y = 1, N = 1000) of the README table's two prior sam
 for training keys 0..KEYS-1 (6), each the key the static example gives a method at that place
 (``benchmarks/averaged_maps.py``'s draws). The ``default`` rows of ``static_keys.json`` were run
 with 0.2.18, whose default was batches of 128: with 0.2.19 pass '{"batch_size": 128}' for them.
+PRIOR_KEY=K in the environment draws the two prior samples from key K instead of 2026 (the
+held-out check of ``static_keys_prior7.json``).
 ``local_ot(local_windows(geometry, 0.0), **options)``; AVG=K in the environment averages K
 trainings (``averaged_maps``). Prints one JSON row per key (W1 per coordinate to the exact
 posterior averaged over the two samples, over the floor of N exact samples averaged the same
@@ -44,7 +46,7 @@ keys = int(sys.argv[4]) if len(sys.argv) > 4 else 6
 avg = int(os.environ.get("AVG", "1"))
 for dim in dims:
     run = build(dim, kwargs, avg)
-    seeds = jax.random.split(jax.random.key(2026), 2)
+    seeds = jax.random.split(jax.random.key(int(os.environ.get("PRIOR_KEY", "2026"))), 2)
     per_key = []
     for place in range(keys):
         t = time.perf_counter(); vals = []
