@@ -13,7 +13,9 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
 - ``local_ot:K``, ``local_ot:K:F``, ``local_ot:K:F:B`` or ``local_ot:K:F:B:I``: ``local_ot`` with
   K iterations a step (fresh networks at every step), f's learning rate F (default 1e-4: f moves
   little in 64 steps of it; leave it empty, ``local_ot:64::512``, to keep it), mini-batches of B
-  local pairs (default 128) and the layer's inflation I (default the catalogue's 1.04).
+  local pairs (default 128) and the layer's inflation I (default the catalogue's 1.04); a fifth
+  field ``fresh`` draws each mini-batch's local observations afresh (``fresh_observations=True``),
+  e.g. ``local_ot:64::512::fresh``.
 - ``local_ot_avg:K`` or ``local_ot_avg:K:I``: K trainings of the catalogue's ``local_ot`` at every
   step (each member its own keys: other fresh networks and mini-batches), the K transported
   ensembles averaged particle by particle, which is the output of the average of the K maps
@@ -142,8 +144,8 @@ def build(method: str, model):
                                  divergence_threshold=1e-12)
     if method.startswith("local_ot:"):
         iterations, *rest = method.split(":")[1:]
-        if len(rest) > 3:
-            raise ValueError(f"unknown method {method!r}: local_ot:K[:F[:B[:I]]]")
+        if len(rest) > 4 or (len(rest) == 4 and rest[3] not in ("", "fresh")):
+            raise ValueError(f"unknown method {method!r}: local_ot:K[:F[:B[:I[:fresh]]]]")
         options = {}
         if rest and rest[0]:
             options["potential_learning_rate"] = float(rest[0])
@@ -151,6 +153,8 @@ def build(method: str, model):
             options["batch_size"] = int(rest[1])
         if len(rest) > 2 and rest[2]:
             options["inflation"] = float(rest[2])
+        if len(rest) > 3 and rest[3]:
+            options["fresh_observations"] = True
         return lorenz96_local_ot(model, int(iterations), warm_start=False, **options)
     if method == "local_ot_step":
         return lorenz96_local_ot(model, local["ot_iterations"], taper="step", warm_start=False)

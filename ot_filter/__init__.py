@@ -40,7 +40,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.19"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.20"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -74,6 +74,8 @@ __version__ = "0.2.19"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       offer <method>_avg<K> for ot and local_ot
 #                       0.2.19: local_ot's mini-batches are 512 local pairs (were 128); the Lorenz-96
 #                       catalogue keeps 128 (what its figures were measured with)
+#                       0.2.20: local_ot(fresh_observations=True) draws each mini-batch's local
+#                       observations afresh (off by default)
 
 __all__ = [
     "BayesUpdate",

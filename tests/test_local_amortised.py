@@ -54,6 +54,8 @@ def test_a_map_of_other_sizes_is_refused():
         otf.local_ot(windows, initial_map={"potential": None})
     with pytest.raises(ValueError, match="num_iterations must be a positive int"):
         otf.local_ot(windows, num_iterations=0)  # 0 iterations needs a map to use
+    with pytest.raises(ValueError, match="the bank stores each pair's simulated observations"):
+        local_bank(jax.random.PRNGKey(0), otf.local_ot(windows, fresh_observations=True), model, prior[None])
 
 
 def test_bank_batches_pair_a_copy_of_the_same_ensemble_and_coordinate():

@@ -21,6 +21,7 @@ from ot_filter.transport.standardisation import Standardisation
 from ot_filter.updates.local_ot import (
     LocalOTSettings,
     _layer_weights,
+    _fresh_slots,
     _local_data,
     _move,
     local_ot,
@@ -155,6 +156,34 @@ def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain
     np.testing.assert_allclose(context[0].reshape(size, window, levels), deviations[np.asarray(windows.state)],
                                atol=1e-12)
     np.testing.assert_allclose(np.asarray(data.gain)[:, :, 2 * reach:], 0.0, atol=1e-10)
+
+
+def test_fresh_observations_are_h_of_the_pair_plus_the_slots_noise_and_keep_the_rest(x64):
+    """``fresh_observations``: a pair's observation slots redrawn as h(X)_O + noise of R's diagonal
+    (standardised), masked slots (padding, missing components) 0, the mask and context columns as
+    simulated. Monte Carlo over 20,000 draws of one pair: mean and standard deviation within five
+    standard errors."""
+    num, size, observed = 30, 10, np.arange(0, 10, 2)
+    windows, xs, ys, y = _ring_data(jax.random.PRNGKey(5), num, size, observed, 2.0, 0.0)
+    present = jnp.array([True, True, False, True, True])  # a missing component
+    predicted = xs[:, observed] * 0.8 + 0.1
+    variance = jnp.array([0.09, 0.25, 0.04, 0.16, 0.01])
+    data = _local_data(_numbers(windows, 2), xs, jnp.where(present, ys, 0.0), jnp.where(present, y, 0.0), present,
+                       jnp.ones(num, bool), fresh=(predicted, variance))
+    reach = windows.observations.shape[1]
+    draws, pair, coordinate = 20_000, 7, 3
+    rows, coordinates = jnp.full((draws,), pair), jnp.full((draws,), coordinate)
+    fresh = np.asarray(_fresh_slots(jax.random.PRNGKey(6), data, rows, coordinates, data.y[rows, coordinates]))
+    slots = np.asarray(windows.observations[coordinate])
+    mask = np.asarray(windows.observations_valid[coordinate]) & np.asarray(present)[slots]
+    assert 0 < mask.sum() < reach  # padding or the missing component among the slots
+    sd = np.where(mask, np.sqrt(np.asarray(variance)[slots]), 0.0)
+    expected = np.where(mask, np.asarray(predicted)[pair, slots], 0.0)
+    np.testing.assert_allclose(fresh[:, :reach].mean(axis=0), expected, atol=5 * sd.max() / np.sqrt(draws))
+    np.testing.assert_allclose(fresh[:, :reach].std(axis=0), sd, rtol=5 / np.sqrt(2 * draws))
+    assert np.all(fresh[:, :reach][:, ~mask] == 0.0)
+    np.testing.assert_array_equal(fresh[:, reach:], np.broadcast_to(np.asarray(data.y)[pair, coordinate, reach:],
+                                                                    (draws, fresh.shape[1] - reach)))
 
 
 def test_the_location_context_is_each_windows_mean_and_spread_in_model_coordinates(x64):
@@ -354,6 +383,10 @@ def test_the_deterministic_layer_needs_gaussian_observation_noise():
     state = update.init(jax.random.PRNGKey(0), prior, model)
     with pytest.raises(ValueError, match="additive Gaussian"):
         update.apply(jax.random.PRNGKey(1), state, prior, jnp.ones(3), model._replace(observation_function=None))
+    fresh = local_ot(local_windows(model.geometry, 0.0), num_iterations=2, fresh_observations=True)
+    with pytest.raises(ValueError, match=r"fresh_observations=True\) needs a model with additive Gaussian"):
+        fresh.apply(jax.random.PRNGKey(1), fresh.init(jax.random.PRNGKey(0), prior, model), prior, jnp.ones(3),
+                    model._replace(observation_noise_cov=None))
     with pytest.raises(ValueError, match="enkf_layer must be"):
         local_ot(local_windows(model.geometry, 0.0), enkf_layer="square-root")
     with pytest.raises(ValueError, match="taper must be one of"):

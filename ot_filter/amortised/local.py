@@ -127,6 +127,9 @@ def local_bank(key: Array, update: LocalOTUpdate, model: StateSpaceModel, foreca
     (inflated, observations simulated with a key per ensemble). Ensembles are processed one at
     a time (``lax.map``): the bank, not the work, is what holds memory."""
     numbers, structure = local_update_parts(update)
+    if structure.fresh_observations:
+        raise ValueError("the bank stores each pair's simulated observations: build the update without "
+                         "fresh_observations")
     if forecasts.ndim != 3:
         raise ValueError(f"forecasts must have shape [E, N, n], got {forecasts.shape}")
     m = jax.eval_shape(model.sample_observation, key, forecasts[0, 0]).shape[0]

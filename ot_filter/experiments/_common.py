@@ -46,7 +46,7 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
     options = dict(ot_defaults or {})
     options.update(ot_options or {})
     local_options = {k: v for k, v in options.items() if k not in ("concavity_points", "prior_smoothing",
-                                                                   "fresh_observations", "concavity_step")}
+                                                                   "concavity_step")}
 
     def localised(build):
         if model is None or getattr(model, "geometry", None) is None or radius is None:
