@@ -20,8 +20,8 @@ from ot_filter.transport.saddle import enkf_gain, transport_input
 from ot_filter.transport.standardisation import Standardisation
 from ot_filter.updates.local_ot import (
     LocalOTSettings,
-    _layer_weights,
     _fresh_slots,
+    _layer_weights,
     _local_data,
     _move,
     local_ot,
@@ -158,18 +158,20 @@ def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain
     np.testing.assert_allclose(np.asarray(data.gain)[:, :, 2 * reach:], 0.0, atol=1e-10)
 
 
-def test_fresh_observations_are_h_of_the_pair_plus_the_slots_noise_and_keep_the_rest(x64):
-    """``fresh_observations``: a pair's observation slots redrawn as h(X)_O + noise of R's diagonal
-    (standardised), masked slots (padding, missing components) 0, the mask and context columns as
-    simulated. Monte Carlo over 20,000 draws of one pair: mean and standard deviation within five
-    standard errors."""
+def test_fresh_observations_are_h_of_the_pair_plus_the_windows_noise_and_keep_the_rest(x64):
+    """``fresh_observations``: a pair's observation slots redrawn as h(X)_O + noise of R[O, O]
+    (a correlated R here), masked slots (padding, missing components) 0, the mask and context
+    columns as simulated. Monte Carlo over 20,000 draws of one pair: mean and covariance within
+    five standard errors."""
     num, size, observed = 30, 10, np.arange(0, 10, 2)
-    windows, xs, ys, y = _ring_data(jax.random.PRNGKey(5), num, size, observed, 2.0, 0.0)
+    windows, xs, ys, y = _ring_data(jax.random.PRNGKey(5), num, size, observed, 4.0, 0.0)
     present = jnp.array([True, True, False, True, True])  # a missing component
     predicted = xs[:, observed] * 0.8 + 0.1
-    variance = jnp.array([0.09, 0.25, 0.04, 0.16, 0.01])
+    sd = jnp.array([0.3, 0.5, 0.2, 0.4, 0.1])
+    correlation = 0.6 ** jnp.abs(jnp.arange(5)[:, None] - jnp.arange(5)[None, :])
+    covariance = correlation * jnp.outer(sd, sd)
     data = _local_data(_numbers(windows, 2), xs, jnp.where(present, ys, 0.0), jnp.where(present, y, 0.0), present,
-                       jnp.ones(num, bool), fresh=(predicted, variance))
+                       jnp.ones(num, bool), fresh=(predicted, covariance))
     reach = windows.observations.shape[1]
     draws, pair, coordinate = 20_000, 7, 3
     rows, coordinates = jnp.full((draws,), pair), jnp.full((draws,), coordinate)
@@ -177,13 +179,37 @@ def test_fresh_observations_are_h_of_the_pair_plus_the_slots_noise_and_keep_the_
     slots = np.asarray(windows.observations[coordinate])
     mask = np.asarray(windows.observations_valid[coordinate]) & np.asarray(present)[slots]
     assert 0 < mask.sum() < reach  # padding or the missing component among the slots
-    sd = np.where(mask, np.sqrt(np.asarray(variance)[slots]), 0.0)
+    block = np.asarray(covariance)[np.ix_(slots, slots)] * np.outer(mask, mask)
     expected = np.where(mask, np.asarray(predicted)[pair, slots], 0.0)
-    np.testing.assert_allclose(fresh[:, :reach].mean(axis=0), expected, atol=5 * sd.max() / np.sqrt(draws))
-    np.testing.assert_allclose(fresh[:, :reach].std(axis=0), sd, rtol=5 / np.sqrt(2 * draws))
+    np.testing.assert_allclose(fresh[:, :reach].mean(axis=0), expected, atol=5 * np.sqrt(block.max() / draws))
+    variances = np.diag(block)
+    stderr = np.sqrt((np.outer(variances, variances) + block**2) / draws)  # of a sample covariance
+    assert np.all(np.abs(np.cov(fresh[:, :reach].T) - block) <= 5 * stderr + 1e-12)
     assert np.all(fresh[:, :reach][:, ~mask] == 0.0)
+    assert np.abs(block[mask][:, mask] - np.diag(variances[mask])).max() > 0.01  # the test sees correlation
     np.testing.assert_array_equal(fresh[:, reach:], np.broadcast_to(np.asarray(data.y)[pair, coordinate, reach:],
                                                                     (draws, fresh.shape[1] - reach)))
+
+
+@pytest.mark.parametrize("enkf_layer", [False, "perturbed", "deterministic"])
+def test_fresh_observations_change_the_training_not_the_rest(enkf_layer):
+    """With each layer the option reaches the training (another map from the same keys) and the
+    update stays finite; the experiments pass it on to the localised update."""
+    model, prior, _, _ = _static_problem(3, num=200)
+    outputs = []
+    for fresh in (False, True):
+        update = local_ot(local_windows(model.geometry, 0.0), num_iterations=50, enkf_layer=enkf_layer,
+                          fresh_observations=fresh)
+        state = update.init(jax.random.PRNGKey(0), prior, model)
+        posterior, _, info = update.apply(jax.random.PRNGKey(1), state, prior, jnp.ones(3), model)
+        assert not bool(info.diverged) and bool(jnp.all(jnp.isfinite(posterior)))
+        outputs.append(np.asarray(posterior))
+    assert np.abs(outputs[0] - outputs[1]).max() > 1e-3
+    from ot_filter.experiments._common import make_updates
+    from ot_filter.updates.local_ot import local_update_parts
+    for options, expected in ((None, False), ({"fresh_observations": True}, True)):
+        built = make_updates(["local_ot"], options, model=model, radius=0.0)["local_ot"]
+        assert local_update_parts(built)[1].fresh_observations is expected
 
 
 def test_the_location_context_is_each_windows_mean_and_spread_in_model_coordinates(x64):

@@ -122,14 +122,18 @@ class LocalBank(NamedTuple):
     gain: Array  # [E, n, S, C] each window's layer gain
 
 
+def _refuse_fresh_observations(structure) -> None:
+    if structure.fresh_observations:
+        raise ValueError("the bank stores each pair's simulated observations: build the update without "
+                         "fresh_observations")
+
+
 def local_bank(key: Array, update: LocalOTUpdate, model: StateSpaceModel, forecasts: Array) -> LocalBank:
     """The local pairs ``update`` would train on at each forecast ensemble ``forecasts[E, N, n]``
     (inflated, observations simulated with a key per ensemble). Ensembles are processed one at
     a time (``lax.map``): the bank, not the work, is what holds memory."""
     numbers, structure = local_update_parts(update)
-    if structure.fresh_observations:
-        raise ValueError("the bank stores each pair's simulated observations: build the update without "
-                         "fresh_observations")
+    _refuse_fresh_observations(structure)
     if forecasts.ndim != 3:
         raise ValueError(f"forecasts must have shape [E, N, n], got {forecasts.shape}")
     m = jax.eval_shape(model.sample_observation, key, forecasts[0, 0]).shape[0]
@@ -167,6 +171,7 @@ def train_local_map(key: Array, update: LocalOTUpdate, bank: LocalBank, num_iter
     for ``num_iterations`` outer iterations on mini-batches of the bank (``batch_size``: the
     update's unless given). Returns the parameters and the trace (J of every iteration)."""
     numbers, structure = local_update_parts(update)
+    _refuse_fresh_observations(structure)
     batch_size = structure.batch_size if batch_size is None else batch_size
     init_key, train_key = jax.random.split(key)
     state = _init_local_training(numbers, structure, init_key, bank)

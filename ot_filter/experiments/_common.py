@@ -39,7 +39,9 @@ _AVERAGED = re.compile(r"^(?P<method>[a-z_]+)_avg(?P<count>[1-9][0-9]*)$")
 def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: dict | None = None,
                  model=None, radius: float | None = None, state_radius: float = 0.0) -> dict:
     """``{name: update}`` for the named methods; OT gets ``ot_defaults`` updated by ``ot_options``
-    (the localised OT update too). ``letkf``, ``local_ot`` and ``local_etpf`` need the ``model``
+    (the localised OT update too, but for the global map's smoothing and concavity options:
+    ``fresh_observations`` given here is the global map's and the localised one's, whose defaults
+    differ, True and False). ``letkf``, ``local_ot`` and ``local_etpf`` need the ``model``
     (its geometry) and a localisation ``radius`` (a step taper for the LETKF and the LETPF, so
     that all three see the same observations). ``ot_avgK`` and ``local_ot_avgK`` are ``ot`` and
     ``local_ot`` trained K times with their own keys, the outputs averaged (``averaged_maps``)."""

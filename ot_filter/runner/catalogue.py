@@ -362,9 +362,9 @@ def _lorenz63_plot(options, groups, out):
 # Warm-started from step to step the shared map drifted (its J crept from 0 to 0.1-0.2 after 200
 # steps and the RMSE doubled); a loss bound that restarted it still left RMSE 0.301
 # (``benchmarks/ot_lorenz96.py`` measures them). Mini-batches of 128 local pairs: every Lorenz-96
-# figure was measured with them. local_ot's default of 512 (0.2.19), on the same 16 truths in one
-# run: squared observations 0.773 against 0.821 (the LETKF 0.767; 512 - 128 = -0.048 +- 0.041, not
-# resolved), linear 0.2319 against 0.2331 (-0.0013 +- 0.0004), at 3.4 times the seconds
+# figure was measured with them. local_ot's default of 512 (0.2.19), 16 truths, one run per
+# operator: squared observations 0.773 against 0.821 (the LETKF 0.766; 512 - 128 = -0.048 +- 0.041,
+# not resolved), linear 0.2319 against 0.2331 (-0.0013 +- 0.0004), at 3.4-3.5 times the seconds
 # (``benchmarks/results/ot_lorenz96/batch_fresh_16/``): not enough to pay for the CLI's default run.
 LORENZ96_LOCAL = dict(letkf_radius=4.0, ot_taper_radius=4.0, ot_state_radius=0.0, inflation=1.04, ot_iterations=64,
                       ot_batch_size=128)

@@ -60,7 +60,7 @@ the shared map can be trained once on the local pairs of many forecast ensembles
 Training has no smoothed prior: the observations of a jittered state would need the whole
 state. Fresh observations (``fresh_observations=True``, models with additive Gaussian noise) need
 only the window: a pair's observation slots are drawn afresh at every mini-batch as h(X)_O plus
-noise of R's diagonal, so that the map does not learn the one noise draw each pair was simulated
+noise of R[O, O], so that the map does not learn the one noise draw each pair was simulated
 with (10,000 iterations of 512 see each pair 2,560 times at n = 2 and N = 1000, 102 times at
 n = 50). The numbers and the rest of the structure are ``ot()``'s (``updates.ot.recipe``).
 """
@@ -191,13 +191,14 @@ def local_ot(
         offline map is used as is (``num_iterations=0``: T's forward pass is then the step's
         main cost), else 0 (T at every particle; wider windows cannot be tabulated).
       fresh_observations: draw each mini-batch's local observations afresh, h(X)_O plus noise
-        of R's diagonal (module docstring; needs ``model.observation_function`` and
+        of R's window block R[O, O] (module docstring; needs ``model.observation_function`` and
         ``observation_noise_cov``), instead of the one observation simulated per particle. Not
         for the offline trainer, whose bank stores the simulated ones. It helps where a training
         sees each local pair many times (iterations x batch / (N n)): one update of 10,000
-        iterations on the static example took W1 from 1.26 to 0.81 times the floor at n = 2 and
-        from 1.60 to 1.43 at n = 10, and changed nothing at n = 20 and 50, nor in the filters
-        measured (64 iterations a step; ``docs/ot_at_scale.md``). Off by default.
+        iterations on the static example took W1 from 0.069 to 0.044 at n = 2 (floor 0.040) and
+        from 1.60 to 1.43 times the floor at n = 10 (not resolved on held-out prior samples), and
+        changed nothing at n = 20 and 50, nor in the filters measured (short trainings a step;
+        ``docs/ot_at_scale.md``). Off by default; unused by a map used as is.
       initial_map: the shared networks' parameters trained offline (``amortised.train_local_map``,
         built with the same sizes and windows; ``amortised.amortised_local_ot`` builds this update
         from a recorded ``LocalMap``): every training starts from them (with fresh
@@ -223,7 +224,7 @@ def local_ot(
         potential_optimizer=potential_optimizer, transport_optimizer=transport_optimizer,
         warm_start=warm_start, divergence_threshold=divergence_threshold,
         trend_threshold=trend_threshold, inflation=inflation, concavity_points=0,
-        concavity_step=0.1, prior_smoothing=0.0, fresh_observations=bool(fresh_observations),
+        concavity_step=0.1, prior_smoothing=0.0, fresh_observations=bool(fresh_observations) and not as_is,
         potential_learning_rate=potential_learning_rate,
         potential_weight_decay=potential_weight_decay, transport_learning_rate=transport_learning_rate,
     )
@@ -358,7 +359,8 @@ class _LocalData(NamedTuple):
     layer_y: Array  # [N, n, C]: the layer's input is layer_x[q] + gain (y - layer_y[q]) for copy q:
     #                 x and y (the perturbed layer), or m + d_q and the mean h(X) (deterministic)
     predicted: Array | None = None  # [N, n, K] h(X) on the observation slots (0 where masked) and
-    noise_sd: Array | None = None  # [n, K] the slots' noise standard deviations: fresh observations
+    noise_factor: Array | None = None  # [n, K, K] Cholesky factor of the slots' noise covariance
+    #                                    (rows of masked slots 0): fresh observations
 
 
 def local_prior_quantiles(xs: Array, active: Array, levels: Array) -> Array:
@@ -390,7 +392,8 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     """Windows of standardised particles ``xs[N, n]`` and observations ``ys[N, m]``; missing
     components (``observed[m]`` False) and padding are 0 with mask 0. ``layer``: the standardised
     ``h(X)[N, m]`` and noise variances ``[m]`` of the deterministic layer (None: perturbed);
-    ``fresh``: the same for drawing fresh observations (None: none)."""
+    ``fresh``: ``h(X)[N, m]`` and the noise covariance (``[m]`` diagonal or ``[m, m]``) for drawing
+    fresh observations (None: none)."""
     windows = numbers.windows
     mask = (windows.observations_valid & observed[windows.observations]).astype(xs.dtype)  # [n, K]
     quantiles = local_prior_quantiles(xs, active, numbers.context_levels)  # [n, Q]
@@ -408,9 +411,9 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     y = jax.vmap(local_y)(ys)
     noise = {}
     if fresh is not None:
-        predicted, variance = fresh
-        noise = dict(predicted=predicted[:, windows.observations] * mask,
-                     noise_sd=jnp.sqrt(variance[windows.observations]) * mask)
+        predicted, covariance = fresh
+        noise = dict(predicted=jnp.where(mask > 0, predicted[:, windows.observations], 0.0),
+                     noise_factor=_window_noise_factor(covariance, windows.observations, mask))
     if layer is None:
         # The gain of the observation slots; the mask and context columns are constant for a
         # coordinate (no covariance, no gain) and would only grow the matrix to factorise.
@@ -423,12 +426,25 @@ def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Arra
     return _LocalData(x, y, local_y(y_standard), gain, layer_x, layer_y, **noise)
 
 
+def _window_noise_factor(covariance: Array, observations: Array, mask: Array) -> Array:
+    """``[n, K, K]``: the Cholesky factor of each window's noise covariance R[O, O] (``covariance``
+    ``[m]``, a diagonal, or ``[m, m]``), masked slots decoupled (unit variance) and their rows 0."""
+    if covariance.ndim == 1:
+        window = jax.vmap(jnp.diag)(covariance[observations])
+    else:
+        window = covariance[observations[:, :, None], observations[:, None, :]]
+    both = mask[:, :, None] * mask[:, None, :]
+    eye = jnp.eye(mask.shape[1], dtype=covariance.dtype)
+    factor = jnp.linalg.cholesky(jnp.where(both > 0, window, 0.0) + eye * (1.0 - mask)[:, None, :])
+    return jnp.where(mask[:, :, None] > 0, factor, 0.0)
+
+
 def _fresh_slots(key: Array, data: _LocalData, rows: Array, coordinate: Array, y: Array) -> Array:
     """``y[B, C]`` (the local pairs ``rows``, ``coordinate``) with its observation slots drawn
-    afresh: h(X)_O plus Gaussian noise of the slots' standard deviations (0 on masked slots)."""
+    afresh: h(X)_O plus Gaussian noise of the window's covariance (0 on masked slots)."""
     slots = data.predicted[rows, coordinate]
-    fresh = slots + data.noise_sd[coordinate] * jax.random.normal(key, slots.shape, slots.dtype)
-    return y.at[:, :slots.shape[1]].set(fresh)
+    noise = jnp.einsum("bkj,bj->bk", data.noise_factor[coordinate], jax.random.normal(key, slots.shape, slots.dtype))
+    return y.at[:, :slots.shape[1]].set(slots + noise)
 
 
 def _location_features(scaling: Standardisation, windows: LocalWindows, mask: Array) -> Array:
@@ -516,18 +532,19 @@ def _layer_inputs(structure: OTStructure, model: StateSpaceModel, particles: Arr
     for the perturbed layer (or none)."""
     if not structure.deterministic_layer:
         return None
-    return _gaussian_observations("enkf_layer='deterministic'", model, particles, scaling)
+    predicted, covariance = _gaussian_observations("enkf_layer='deterministic'", model, particles, scaling)
+    return predicted, covariance if covariance.ndim == 1 else jnp.diagonal(covariance)
 
 
 def _gaussian_observations(option: str, model: StateSpaceModel, particles: Array, scaling: Standardisation):
-    """Standardised ``h(X)[N, m]`` and the noise variances ``[m]`` (R's diagonal)."""
+    """Standardised ``h(X)[N, m]`` and noise covariance: ``[m]`` (a diagonal R) or ``[m, m]``."""
     if not model.has_gaussian_observation_noise:
         raise ValueError(f"local_ot({option}) needs a model with additive Gaussian "
                          "observation noise: give model.observation_function and model.observation_noise_cov")
     noise = jnp.asarray(model.observation_noise_cov, particles.dtype)
-    variance = noise if noise.ndim == 1 else jnp.diagonal(noise)
+    scale = scaling.y_scale**2 if noise.ndim == 1 else jnp.outer(scaling.y_scale, scaling.y_scale)
     predicted = scaling.standardise_y(jax.vmap(model.observation_function)(particles))
-    return predicted, variance / scaling.y_scale**2
+    return predicted, noise / scale
 
 
 def local_pairs(numbers: LocalOTSettings, structure: OTStructure, key: Array, log_weights: Array, particles: Array,
@@ -540,8 +557,7 @@ def local_pairs(numbers: LocalOTSettings, structure: OTStructure, key: Array, lo
     layer = _layer_inputs(structure, model, prior.particles, prior.scaling)
     fresh = None
     if structure.fresh_observations:
-        fresh = layer if layer is not None else _gaussian_observations("fresh_observations=True", model,
-                                                                       prior.particles, prior.scaling)
+        fresh = _gaussian_observations("fresh_observations=True", model, prior.particles, prior.scaling)
     data = _local_data(numbers, prior.xs, prior.ys, y_standard, prior.observed, prior.active, layer,
                        prior.scaling if structure.location_context else None, fresh)
     return prior, data
