@@ -1,7 +1,7 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``local_etpf``, ``ot``, ``local_ot``, and ``amortised_ot`` with a map trained offline by
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``local_etpf``, ``ot``, ``local_ot``, ``flow_matching``, and ``amortised_ot`` with a map trained offline by
 ``amortised``; ``split_likelihood`` chains them on powers of the likelihood; ``averaged_maps``
 averages several trainings of a map);
 ``localisation`` describes where the state and observations lie (``ring``, ``points``) and builds
@@ -28,6 +28,10 @@ from ot_filter.updates import (
     SIRInfo,
     SIRState,
     enkf,
+    flow_matching,
+    FlowInfo,
+    FlowState,
+    FlowUpdate,
     letkf,
     local_etpf,
     local_ot,
@@ -40,7 +44,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.20"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.21"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -76,6 +80,7 @@ __version__ = "0.2.20"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       catalogue keeps 128 (what its figures were measured with)
 #                       0.2.20: local_ot(fresh_observations=True) draws each mini-batch's local
 #                       observations afresh (off by default)
+#                       0.2.21: flow_matching (a conditional transport learned by regression)
 
 __all__ = [
     "BayesUpdate",
@@ -98,6 +103,10 @@ __all__ = [
     "averaged_maps",
     "continuous",
     "enkf",
+    "flow_matching",
+    "FlowInfo",
+    "FlowState",
+    "FlowUpdate",
     "kalman_filter",
     "letkf",
     "local_etpf",

@@ -553,8 +553,8 @@ def _plt():
     return plt
 
 
-COLOURS = {"enkf": "tab:blue", "sir": "tab:orange", "ot": "tab:green"}
-LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT"}
+COLOURS = {"enkf": "tab:blue", "sir": "tab:orange", "ot": "tab:green", "flow_matching": "tab:purple"}
+LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "flow_matching": "flow matching"}
 
 
 def plot_dynamic_example(result: dict, out_dir: str, tag: str = "") -> list[str]:

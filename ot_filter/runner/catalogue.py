@@ -117,7 +117,7 @@ def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=Fa
     return fig
 
 
-LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
+LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "flow_matching": "flow matching", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
           "letkf_etpf": "LETKF + LETPF (l^0.25)", "local_ot_etpf": "OT, localised + LETPF (l^0.25)",
           "local_ot": "OT, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
           "amortised_distilled": "amortised OT (a), distilled map",
@@ -529,14 +529,14 @@ EXPERIMENTS = {
             dict(_COMMON, particles=(1000,), dim=(2,), noise=(0.4, 0.04), simulations=3, block=1,
                  methods=("enkf", "sir", "ot")),
             dict(particles=(300,), simulations=1),
-            ("particles", "noise"), ("enkf", "sir", "ot"), _static_cell, _static_plot,
+            ("particles", "noise"), ("enkf", "sir", "ot", "flow_matching"), _static_cell, _static_plot,
         ),
         Experiment(
             "dynamic", "the chapter's dynamic example: MMD to the exact posterior over time",
             dict(_COMMON, particles=(1000,), dim=(2,), steps=50, simulations=20,
                  methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
             dict(particles=(200,), steps=15, simulations=2, block=2, map_iterations=3000),
-            (), ("enkf", "letkf", "sir", "ot", "local_ot") + AMORTISED_METHODS + LOCAL_AMORTISED_METHODS,
+            (), ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot") + AMORTISED_METHODS + LOCAL_AMORTISED_METHODS,
             _dynamic_cell, _dynamic_plot,
         ),
         Experiment(
@@ -544,7 +544,7 @@ EXPERIMENTS = {
             dict(_COMMON, particles=(1000,), dim=(2, 4, 6, 8, 10), steps=20, simulations=20,
                  methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
             dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2, map_iterations=3000),
-            ("dim",), ("enkf", "letkf", "sir", "ot", "local_ot") + LOCAL_AMORTISED_METHODS, _dynamic_cell,
+            ("dim",), ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot") + LOCAL_AMORTISED_METHODS, _dynamic_cell,
             _dynamic_plot,
         ),
         Experiment(

@@ -9,6 +9,7 @@ from ot_filter.updates.base import (
     uniform_log_weights,
 )
 from ot_filter.updates.enkf import EnKFInfo, EnKFSettings, enkf
+from ot_filter.updates.flow_matching import FlowInfo, FlowSettings, FlowState, FlowStructure, FlowUpdate, flow_matching
 from ot_filter.updates.letkf import LETKFInfo, LETKFSettings, letkf
 from ot_filter.updates.local_etpf import LocalETPFInfo, LocalETPFSettings, local_etpf
 from ot_filter.updates.local_ot import LocalOTSettings, LocalOTState, LocalOTUpdate, local_ot
@@ -24,6 +25,11 @@ __all__ = [
     "BayesUpdate",
     "EnKFInfo",
     "EnKFSettings",
+    "FlowInfo",
+    "FlowSettings",
+    "FlowState",
+    "FlowStructure",
+    "FlowUpdate",
     "LETKFInfo",
     "LETKFSettings",
     "LocalETPFInfo",
@@ -47,6 +53,7 @@ __all__ = [
     "averaged_maps",
     "count_active",
     "enkf",
+    "flow_matching",
     "letkf",
     "local_etpf",
     "local_ot",

@@ -110,8 +110,13 @@ __all__ = [
     "OTUpdate",
     "Standardisation",
     "correlation_cholesky",
+    "enkf_fallback",
+    "fallback_gain",
+    "observed_simulator",
     "ot",
     "smoothed_draw",
+    "training_data",
+    "trend_and_budget",
 ]
 
 
@@ -501,9 +506,10 @@ class PriorData(NamedTuple):
     ys: Array  # [N, m] standardised simulated observations, missing components 0
 
 
-def prior_data(settings: OTSettings, key: Array, log_weights: Array, particles: Array, observation: Array,
+def prior_data(settings, key: Array, log_weights: Array, particles: Array, observation: Array,
                model: StateSpaceModel) -> PriorData:
-    """Inflate, simulate Y^i ~ h(. | X^i), standardise over the active (unpadded) particles.
+    """Inflate (by ``settings.inflation``: ``OTSettings`` or any settings with that number),
+    simulate Y^i ~ h(. | X^i), standardise over the active (unpadded) particles.
     Missing components (NaN in y) are set to their standardised mean 0 in every training pair
     (and the caller sets them so in y): a constant carries no information, so the map learnt is
     T(x, y_observed)."""
@@ -516,6 +522,40 @@ def prior_data(settings: OTSettings, key: Array, log_weights: Array, particles: 
                      scaling.standardise_x(particles), jnp.where(observed, scaling.standardise_y(simulated), 0.0))
 
 
+def observed_simulator(model: StateSpaceModel, observed: Array, scaling: Standardisation) -> Callable:
+    """``sample_observation(key, x)`` with the missing components (``observed`` False) held at
+    their mean, which standardises to 0: a constant carries no information."""
+
+    def sample_observation(key, x):
+        return jnp.where(observed, model.sample_observation(key, x), scaling.y_mean)
+
+    return sample_observation
+
+
+def training_data(prior: PriorData, prior_smoothing, smoothing: bool) -> TrainingData:
+    """What the mini-batches are drawn from: the prior's standardised pairs, the active
+    particles first, and the smoothing kernel (its Cholesky factor only where ``smoothing``)."""
+    n = prior.xs.shape[1]
+    return TrainingData(
+        prior.xs, prior.ys,
+        active_index=active_first(prior.active),  # mini-batches draw indices below num_active
+        num_active=prior.num_active,
+        bandwidth=smoothing_bandwidth(prior_smoothing, prior.num_active, n, prior.xs.dtype),
+        correlation_factor=correlation_cholesky(prior.xs, prior.active) if smoothing else None,
+        scaling=prior.scaling,
+    )
+
+
+def trend_and_budget(state, prior: PriorData, observation: Array, trend_threshold, first: int, floor: int):
+    """``(trend, lost, budget)``: the innovation trend after this update, whether the filter has
+    lost track, and this update's iterations (the halving schedule from ``state.num_updates``;
+    none while lost)."""
+    trend = innovation_trend(state.innovation_trend, prior.simulated, observation, prior.active)
+    lost = lost_track(trend, trend_threshold, jnp.sum(jnp.isfinite(observation)))
+    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, first, floor))
+    return trend, lost, budget
+
+
 def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_key: Array, state,
           prior: PriorData, observation: Array, sample_batch: Callable, sizes: tuple[int, int],
           cost_from_layer: bool = False):
@@ -525,14 +565,12 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
     ``sizes``: the networks' (x, y) input widths. Returns ``(training, trace, trend, lost)``.
     With no iterations at all (an offline map used as is) nothing is trained or restarted, and
     the trace is empty: the caller fills in the map's J on this prior."""
-    trend = innovation_trend(state.innovation_trend, prior.simulated, observation, prior.active)
-    lost = lost_track(trend, settings.trend_threshold, jnp.sum(jnp.isfinite(observation)))
+    trend, lost, budget = trend_and_budget(state, prior, observation, settings.trend_threshold,
+                                           structure.first_iterations, structure.floor_iterations)
     if structure.first_iterations == 0:
         dtype = prior.xs.dtype
         return state.training, TrainingTrace(jnp.zeros((0,), dtype), jnp.zeros((), dtype), jnp.array(True)), trend, lost
     potential_net, transport_net = networks(structure)
-    budget = jnp.where(lost, 0, iteration_budget(state.num_updates, structure.first_iterations,
-                                                 structure.floor_iterations))
     training = state.training
     if (structure.anchored and structure.restart) or not structure.warm_start:
         training = starting_training(settings, structure, reset_key, *sizes, prior.xs.dtype)
@@ -547,12 +585,13 @@ def train(settings: OTSettings, structure: OTStructure, train_key: Array, reset_
     return training, trace, trend, lost
 
 
-def _fallback_gain(structure, model, particles, xs, ys, layer_gain, scaling, observed, active):
+def fallback_gain(model, particles, xs, ys, scaling, observed, active, layer_gain=None):
     """The fallback EnKF's gain in standardised coordinates: with additive Gaussian noise of
     known R, ``ot_filter.enkf()``'s Cov(X, h) (Cov(h) + R)^{-1} (the sample Cov(Y) of N = 50
     simulated observations of Lorenz-96's 40 put the global OT filter, which falls back every
-    20-50 steps there, at RMSE 3.3 instead of 1.15); else the perturbed layer's gain when there
-    is one, else the gain of the simulated pairs. A missing component gets a zero column."""
+    20-50 steps there, at RMSE 3.3 instead of 1.15); else the perturbed layer's gain
+    ``layer_gain`` when there is one, else the gain of the simulated pairs. A missing component
+    gets a zero column."""
     if model.has_gaussian_observation_noise:
         predicted = jax.vmap(model.observation_function)(particles)
         predicted = jnp.where(observed, scaling.standardise_y(predicted), 0.0)
@@ -560,9 +599,19 @@ def _fallback_gain(structure, model, particles, xs, ys, layer_gain, scaling, obs
         noise_cov = noise_cov / jnp.outer(scaling.y_scale, scaling.y_scale)
         noise_cov = jnp.where(observed[:, None] & observed[None, :], noise_cov, jnp.eye(observed.shape[0], dtype=xs.dtype))
         return known_noise_gain(xs, predicted, noise_cov, active)
-    if structure.enkf_layer and not structure.deterministic_layer:
+    if layer_gain is not None:
         return layer_gain
     return enkf_gain(xs, ys, active)
+
+
+def enkf_fallback(xs, y_standard, ys, gain, scaling, active, num_active):
+    """The stochastic EnKF's posterior particles (original coordinates) with the update's own
+    simulated observations ``ys`` and the standardised ``gain``; padding at the posterior mean, as
+    the EnKF leaves it. Returns ``(particles, standardised particles)``."""
+    enkf_standard = transport_input(xs, y_standard, ys, gain)
+    enkf_particles = scaling.restore_x(enkf_standard)
+    enkf_mean, _ = masked_mean_and_anomalies(enkf_particles, active, num_active)
+    return jnp.where(active[:, None], enkf_particles, enkf_mean), enkf_standard
 
 
 @jax.jit(static_argnames=("structure",))
@@ -576,19 +625,9 @@ def _apply(settings, key, state, particles, observation, model, structure):
     prior = prior_data(settings, simulate_key, state.log_weights, particles, observation, model)
     particles, simulated, active, num_active, scaling, observed, xs, ys = prior
 
-    def sample_observation(key, x):
-        return jnp.where(observed, model.sample_observation(key, x), scaling.y_mean)
-
+    sample_observation = observed_simulator(model, observed, scaling)
     context = prior_context(settings, structure, scaling, xs, active)
-
-    data = TrainingData(
-        xs, ys,
-        active_index=active_first(active),  # mini-batches draw indices below num_active
-        num_active=num_active,
-        bandwidth=smoothing_bandwidth(settings.prior_smoothing, num_active, n, xs.dtype),
-        correlation_factor=correlation_cholesky(xs, active) if structure.smoothing else None,
-        scaling=scaling,
-    )
+    data = training_data(prior, settings.prior_smoothing, structure.smoothing)
 
     # The layer from all particles (the perturbed layer's gain is re-estimated on each
     # mini-batch in training; the deterministic layer's moments always come from here).
@@ -639,13 +678,12 @@ def _apply(settings, key, state, particles, observation, model, structure):
     #    observations (padding at the posterior mean, as the EnKF leaves it), and restart the
     #    networks. A map used as is also falls back where it did not condition (far wider than
     #    the EnKF: ``wider_than_enkf``).
-    fallback_gain = _fallback_gain(structure, model, particles, xs, ys, gain, scaling, observed, active)
-    enkf_standard = transport_input(xs, y_standard, ys, fallback_gain)
+    layer_gain = gain if structure.enkf_layer and not structure.deterministic_layer else None
+    enkf_particles, enkf_standard = enkf_fallback(
+        xs, y_standard, ys, fallback_gain(model, particles, xs, ys, scaling, observed, active, layer_gain),
+        scaling, active, num_active)
     if structure.first_iterations == 0:
         diverged = diverged | (jnp.any(observed) & wider_than_enkf(moved, enkf_standard, active))
-    enkf_particles = scaling.restore_x(enkf_standard)
-    enkf_mean, _ = masked_mean_and_anomalies(enkf_particles, active, num_active)
-    enkf_particles = jnp.where(active[:, None], enkf_particles, enkf_mean)
     posterior = use_where(~diverged, scaling.restore_x(moved), enkf_particles)
     # An observation with nothing finite carries no information: the particles stay
     # (run_filter skips such steps before getting here).
