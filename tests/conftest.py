@@ -71,3 +71,19 @@ def x64():
     """Runs the test body with float64 enabled."""
     with jax.enable_x64(True):
         yield
+
+
+def assert_gaussian_posterior(update, state, particles, posterior, mean_tol, var_range):
+    """The 1-D Gaussian check of a learned conditional map: Y = X + N(0, 1), the map trained at
+    y = 2 gave ``posterior``; the exact posterior given the particles' own moments (m, v) is
+    N(v' (m / v + y), v'), v' = 1 / (1 / v + 1). Checked at y = 2 and, without retraining
+    (``update.transport``), at y = -1: the mean within ``mean_tol`` posterior sds and the
+    variance ratio inside ``var_range``."""
+    mean, variance = float(particles.mean()), float(particles.var())
+    for y, moved in ((2.0, posterior), (-1.0, update.transport(state, particles, jnp.array([-1.0])))):
+        exact_variance = 1.0 / (1.0 / variance + 1.0)
+        exact_mean = exact_variance * (mean / variance + y)
+        error = (float(moved.mean()) - exact_mean) / exact_variance**0.5
+        ratio = float(moved.var()) / exact_variance
+        assert abs(error) < mean_tol, (y, error)
+        assert var_range[0] < ratio < var_range[1], (y, ratio)

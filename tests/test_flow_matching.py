@@ -14,7 +14,7 @@ from ot_filter.reference import squared_observation_posterior
 from ot_filter.transport.flow import VelocityNetwork, cosine_factor, flow_matching_loss, integrate_flow
 from ot_filter.transport.saddle import Batch
 
-from conftest import perturbed_enkf_reference
+from conftest import assert_gaussian_posterior, perturbed_enkf_reference
 
 STATIC = otf.models.squared_observation(dim=2, noise=0.4, observation_scale=0.5, static=True)
 GAUSSIAN = otf.models.linear_gaussian(
@@ -87,14 +87,7 @@ def test_gaussian_prior_linear_observation_matches_the_exact_posterior():
     particles = 1.0 + 2.0 * jax.random.normal(jax.random.key(5), (1000, 1))
     posterior, state, info = run_once(update, particles, jnp.array([2.0]), model=GAUSSIAN, seed=6)
     assert not bool(info.diverged)
-    mean, variance = float(particles.mean()), float(particles.var())
-    for y, moved in ((2.0, posterior), (-1.0, update.transport(state, particles, jnp.array([-1.0])))):
-        exact_variance = 1.0 / (1.0 / variance + 1.0)
-        exact_mean = exact_variance * (mean / variance + y)
-        error = (float(moved.mean()) - exact_mean) / exact_variance**0.5
-        ratio = float(moved.var()) / exact_variance
-        assert abs(error) < MEAN_TOL, (y, error)
-        assert VAR_RANGE[0] < ratio < VAR_RANGE[1], (y, ratio)
+    assert_gaussian_posterior(update, state, particles, posterior, MEAN_TOL, VAR_RANGE)
 
 
 @pytest.mark.long

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import optax
 
 from ot_filter.transport.networks import ACTIVATIONS
-from ot_filter.transport.saddle import Batch, TrainingTrace
+from ot_filter.transport.saddle import Batch, TrainingTrace, recorded_loop
 
 Array = jax.Array
 
@@ -46,8 +46,6 @@ __all__ = [
 # Frequencies (times pi) of the Fourier features of t: enough to let v change fast near t = 1,
 # where the flow sharpens the posterior's modes.
 TIME_FREQUENCIES = 4
-# Smoothing of the loss's moving average (as the saddle training's).
-LOSS_SMOOTHING = 0.99
 # Adam's moments without its rate: each step is scaled by the cosine-decayed rate (train_flow).
 ADAM = optax.scale_by_adam()
 
@@ -115,8 +113,7 @@ def train_flow(key: Array, training: FlowTraining, sample_batch: Callable[[Array
     def loss_of(params, batch, t):
         return flow_matching_loss(lambda x, s, y: network.apply(params, x, s, y), batch, t)
 
-    def step(iteration, carry):
-        training, loss, smoothed, finite = carry
+    def step(iteration, training):
         batch_key, time_key = jax.random.split(jax.random.fold_in(key, iteration))
         batch = sample_batch(batch_key)
         t = jax.random.uniform(time_key, (batch.x.shape[0],), batch.x.dtype)
@@ -124,19 +121,9 @@ def train_flow(key: Array, training: FlowTraining, sample_batch: Callable[[Array
         updates, opt_state = ADAM.update(grads, training.opt_state, training.params)
         rate = learning_rate * cosine_factor(iteration, num_iterations, value.dtype)
         updates = jax.tree.map(lambda u: (-rate * u).astype(u.dtype), updates)
-        training = FlowTraining(optax.apply_updates(training.params, updates), opt_state)
-        if record_length:
-            loss = loss.at[iteration].set(value, mode="drop")
-        smoothed = jnp.where(iteration == 0, value, LOSS_SMOOTHING * smoothed + (1 - LOSS_SMOOTHING) * value)
-        return training, loss, smoothed, finite & jnp.isfinite(value)
+        return FlowTraining(optax.apply_updates(training.params, updates), opt_state), value
 
-    dtype = jax.tree.leaves(training.params)[0].dtype
-    carry = (training, jnp.full((record_length,), jnp.inf, dtype), jnp.zeros((), dtype), jnp.array(True))
-    training, loss, smoothed, finite = jax.lax.fori_loop(0, num_iterations, step, carry)
-    leaves = [leaf for leaf in jax.tree.leaves(training) if jnp.issubdtype(leaf.dtype, jnp.inexact)]
-    state_finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in leaves]))
-    loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
-    return training, TrainingTrace(loss, smoothed, finite & state_finite)
+    return recorded_loop(step, training, num_iterations, record_length)
 
 
 def init_flow(key: Array, network: VelocityNetwork, n: int, m: int, dtype) -> FlowTraining:

@@ -55,6 +55,7 @@ __all__ = [
     "fit_layer",
     "evaluate_saddle",
     "known_noise_gain",
+    "recorded_loop",
     "saddle_objective",
     "saddle_terms",
     "train_saddle",
@@ -277,8 +278,7 @@ def train_saddle(
         return saddle_objective(potential(potential_params), transport(transport_params), batch, gain,
                                 cost_from_layer)
 
-    def outer(iteration, carry):
-        state, loss, smoothed, finite = carry
+    def outer(iteration, state):
         batch = sample_batch(jax.random.fold_in(key, iteration))
         gain = batch_gain(batch, enkf_layer)
         params = state.params
@@ -301,7 +301,23 @@ def train_saddle(
         state = TrainingState(
             SaddleParams(potential_params, transport_params), potential_opt_state, transport_opt_state
         )
-        if record_length:  # 0: nothing recorded (a budget of 0, an offline map used as is)
+        return state, value
+
+    return recorded_loop(outer, state, num_iterations, record_length)
+
+
+def recorded_loop(step: Callable, state, num_iterations: Array | int, record_length: int):
+    """Runs ``step(iteration, state) -> (state, value)`` ``num_iterations`` times (traced
+    allowed, at most ``record_length`` recorded; 0: nothing recorded, e.g. an offline map used
+    as is) and returns ``(state, TrainingTrace)``: each value, their moving average
+    (``LOSS_SMOOTHING``), and whether every value and the final state's parameters and optimiser
+    states are finite (an overflowing Adam moment would poison a warm start). ``state`` has
+    ``params``, whose dtype the record takes."""
+
+    def body(iteration, carry):
+        state, loss, smoothed, finite = carry
+        state, value = step(iteration, state)
+        if record_length:
             loss = loss.at[iteration].set(value, mode="drop")
         smoothed = jnp.where(
             iteration == 0, value, LOSS_SMOOTHING * smoothed + (1 - LOSS_SMOOTHING) * value
@@ -310,8 +326,7 @@ def train_saddle(
 
     dtype = jax.tree.leaves(state.params)[0].dtype
     carry = (state, jnp.full((record_length,), jnp.inf, dtype), jnp.zeros((), dtype), jnp.array(True))
-    state, loss, smoothed, finite = jax.lax.fori_loop(0, num_iterations, outer, carry)
-    # Parameters and optimiser states (an overflowing Adam moment would poison a warm start).
+    state, loss, smoothed, finite = jax.lax.fori_loop(0, num_iterations, body, carry)
     leaves = [leaf for leaf in jax.tree.leaves(state) if jnp.issubdtype(leaf.dtype, jnp.inexact)]
     state_finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in leaves]))
     loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)

@@ -52,6 +52,7 @@ from ot_filter.updates.ot import (
     enkf_fallback,
     fallback_gain,
     finite_or_inf,
+    iteration_schedule,
     observed_simulator,
     prior_data,
     training_data,
@@ -167,17 +168,8 @@ def flow_matching(
         (as ``ot()``'s; 0: train on the particles themselves, whose well-trained flow carries the
         particles onto the atoms of their own weighted posterior and collapses as SIR does).
     """
-    if num_iterations is None:
-        first = floor = None  # ``default_iterations`` of the state dimension, at apply
-    elif isinstance(num_iterations, tuple):
-        if len(num_iterations) != 2:
-            raise ValueError(f"num_iterations must be an int or (first, floor), got {num_iterations!r}")
-        first = check_int("num_iterations[0] (first)", num_iterations[0])
-        floor = check_int("num_iterations[1] (floor)", num_iterations[1])
-        if floor > first:
-            raise ValueError(f"num_iterations (first, floor) needs floor <= first, got {num_iterations}")
-    else:
-        first = floor = check_int("num_iterations", num_iterations)
+    # None: ``default_iterations`` of the state dimension, at apply.
+    first, floor = (None, None) if num_iterations is None else iteration_schedule(num_iterations)
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
     settings = FlowSettings(

@@ -112,6 +112,7 @@ __all__ = [
     "correlation_cholesky",
     "enkf_fallback",
     "fallback_gain",
+    "iteration_schedule",
     "observed_simulator",
     "ot",
     "smoothed_draw",
@@ -303,15 +304,7 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
            ) -> tuple[OTSettings, OTStructure]:
     """Validates ``ot()``'s arguments (also ``local_ot()``'s): the traced numbers and the static
     structure."""
-    if isinstance(num_iterations, tuple):
-        if len(num_iterations) != 2:
-            raise ValueError(f"num_iterations must be an int or (first, floor), got {num_iterations!r}")
-        first_iterations = check_int("num_iterations[0] (first)", num_iterations[0])
-        floor_iterations = check_int("num_iterations[1] (floor)", num_iterations[1])
-        if floor_iterations > first_iterations:
-            raise ValueError(f"num_iterations (first, floor) needs floor <= first, got {num_iterations}")
-    else:
-        first_iterations = floor_iterations = check_int("num_iterations", num_iterations)
+    first_iterations, floor_iterations = iteration_schedule(num_iterations)
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
     layer = {False: None, True: "perturbed", "perturbed": "perturbed", "deterministic": "deterministic"}.get(
@@ -353,6 +346,21 @@ def recipe(*, num_iterations, batch_size, inner_steps, width, num_blocks, activa
         deterministic_layer=layer == "deterministic",
     )
     return settings, structure
+
+
+def iteration_schedule(num_iterations) -> tuple[int, int]:
+    """``(first, floor)`` of a budget given as an int (every update) or as ``(first, floor)``
+    (``first`` at the first update, halved down to ``floor``); checked, errors name the argument."""
+    if isinstance(num_iterations, tuple):
+        if len(num_iterations) != 2:
+            raise ValueError(f"num_iterations must be an int or (first, floor), got {num_iterations!r}")
+        first = check_int("num_iterations[0] (first)", num_iterations[0])
+        floor = check_int("num_iterations[1] (floor)", num_iterations[1])
+        if floor > first:
+            raise ValueError(f"num_iterations (first, floor) needs floor <= first, got {num_iterations}")
+        return first, floor
+    first = check_int("num_iterations", num_iterations)
+    return first, first
 
 
 def default_sizes(n: int) -> tuple[int, int]:
