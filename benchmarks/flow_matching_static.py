@@ -6,7 +6,9 @@ One update (lambda_w = 0.4, y = 1, N = 1000) of the README table's two prior sam
 PRIOR_KEY=K in the environment draws two others), for training keys 0..KEYS-1 (3; FIRST_KEY=k in the environment starts at k), each the key
 the static example gives a method at that place (as ``benchmarks/averaged_maps.py`` and
 ``benchmarks/results/local_ot_batch/static_keys.py``, so that the places match their records).
-``flow_matching(**options)``; with ``--ot`` the global ``ot()`` with its defaults runs on the same
+``flow_matching(**options)``, or with ``--local`` ``local_flow(local_windows(ring(n), 0, 0), **options)``
+(each coordinate its own window and observation); ``--local-ot`` adds ``local_ot()`` on the same
+windows with its defaults; with ``--ot`` the global ``ot()`` with its defaults runs on the same
 samples and keys, in the same process, for a ratio of seconds measured in one run. Prints one JSON
 row per (method, n, key): W1 per coordinate to the exact posterior averaged over the two samples,
 the floor of N exact samples scored the same way, their ratio, the worst coordinate over both
@@ -53,13 +55,18 @@ def main():
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     tag, options, dims = args[0], json.loads(args[1]), [int(d) for d in args[2].split(",")]
     keys = int(args[3]) if len(args) > 3 else 3
-    methods = {"flow_matching": otf.flow_matching(**options)}
+    if "--local" in sys.argv:  # the localised flow, told that the coordinates are independent
+        methods = {"local_flow": lambda dim: otf.local_flow(otf.local_windows(otf.ring(dim), 0, 0), **options)}
+    else:
+        methods = {"flow_matching": lambda dim: otf.flow_matching(**options)}
     if "--ot" in sys.argv:
-        methods["ot"] = otf.ot()
+        methods["ot"] = lambda dim: otf.ot()
+    if "--local-ot" in sys.argv:  # the localised OT update with its defaults, same windows
+        methods["local_ot"] = lambda dim: otf.local_ot(otf.local_windows(otf.ring(dim), 0, 0))
     seeds = jax.random.split(jax.random.key(int(os.environ.get("PRIOR_KEY", "2026"))), 2)
     for dim in dims:
         for name, update in methods.items():
-            run = build(dim, update)
+            run = build(dim, update(dim))
             if not os.environ.get("NO_WARMUP"):  # NO_WARMUP=1: the first row's seconds include compiling
                 jax.block_until_ready(run(seeds[0], 0))  # compile
             for place in range(int(os.environ.get("FIRST_KEY", "0")), keys):
@@ -69,7 +76,7 @@ def main():
                 w1 = sum(float(r[0].w1.mean()) for r in rows) / 2
                 floor = sum(float(r[1].w1.mean()) for r in rows) / 2
                 print(json.dumps({
-                    "tag": tag, "method": name, "dim": dim, "key": place, "options": options if name != "ot" else {},
+                    "tag": tag, "method": name, "dim": dim, "key": place, "options": options if name not in ("ot", "local_ot") else {},
                     "w1": w1, "floor": floor, "ratio": w1 / floor,
                     "worst": max(float(r[0].w1.max()) for r in rows),
                     "worst_floor": max(float(r[1].w1.max()) for r in rows),

@@ -45,6 +45,7 @@ from ot_filter.experiments.static_example import run_static_example  # noqa: E40
 
 METHODS = ("enkf", "letkf", "sir", "ot", "local_ot", "local_etpf", "letkf_etpf", "local_ot_etpf")
 LABELS = {"enkf": "EnKF", "letkf": "LETKF (r = 0)", "sir": "SIR", "ot": "OT (global)", "flow_matching": "flow matching (global)", "local_ot": "OT (localised)",
+          "local_flow": "flow matching (localised)",
           "local_etpf": "LETPF (r = 0, exact 1-D transport)", "letkf_etpf": "LETKF + LETPF (l^0.25)",
           "local_ot_etpf": "OT (localised) + LETPF (l^0.25)"}
 METRICS = ("w1", "w1_max", "sliced_w2", "energy")
@@ -175,7 +176,7 @@ def _table(title, rows, extra=None):
 def _dynamic_extra(rows):
     """The published metric, and each trained method's seconds a step and fallen-back steps."""
     methods = _methods(rows)
-    trained = [n for n in methods if n in ("ot", "flow_matching") or "local_ot" in n or n.startswith(("ot_", "flow_matching_"))]
+    trained = [n for n in methods if n in ("ot", "flow_matching", "local_flow") or "local_ot" in n or n.startswith(("ot_", "flow_matching_"))]
 
     def per_method(row, field, fmt):
         return ", ".join(fmt(row[n][field]) if n in row and field in row[n] else "–" for n in trained)

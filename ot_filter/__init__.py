@@ -1,7 +1,7 @@
 """ot_filter: nonlinear filtering and Bayesian posterior sampling in JAX.
 
 Models are pytrees of per-particle functions (``StateSpaceModel``); Bayes updates are builders
-returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``local_etpf``, ``ot``, ``local_ot``, ``flow_matching``, and ``amortised_ot`` with a map trained offline by
+returning ``BayesUpdate(init, apply)`` (``sir``, ``enkf``, ``letkf``, ``local_etpf``, ``ot``, ``local_ot``, ``flow_matching``, ``local_flow``, and ``amortised_ot`` with a map trained offline by
 ``amortised``; ``split_likelihood`` chains them on powers of the likelihood; ``averaged_maps``
 averages several trainings of a map);
 ``localisation`` describes where the state and observations lie (``ring``, ``points``) and builds
@@ -34,6 +34,7 @@ from ot_filter.updates import (
     FlowUpdate,
     letkf,
     local_etpf,
+    local_flow,
     local_ot,
     ot,
     resample_indices,
@@ -44,7 +45,7 @@ from ot_filter.updates import (
 from ot_filter.updates.amortised import amortised_ot
 from ot_filter import amortised
 
-__version__ = "0.2.21"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
+__version__ = "0.2.22"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run directories of 0.1 are not resumed);
 #                       0.2.1: amortised (b) on Lorenz-63 warm-starts with (32, 8) iterations (a run directory
 #                       of another version is not resumed: its cells would mix the two);
 #                       0.2.2: amortised maps above n = 4 train on larger batches, (b) there trains more a step;
@@ -81,6 +82,7 @@ __version__ = "0.2.21"  # 0.2: ot() sizes its networks from n; f rate 3e-4 (run 
 #                       0.2.20: local_ot(fresh_observations=True) draws each mini-batch's local
 #                       observations afresh (off by default)
 #                       0.2.21: flow_matching (a conditional transport learned by regression)
+#                       0.2.22: local_flow (local_ot's windows and layers with flow_matching's regression)
 
 __all__ = [
     "BayesUpdate",
@@ -110,6 +112,7 @@ __all__ = [
     "kalman_filter",
     "letkf",
     "local_etpf",
+    "local_flow",
     "local_ot",
     "local_windows",
     "localisation",

@@ -18,14 +18,16 @@ from ot_filter.localisation import local_windows, localisation
 from ot_filter.updates import (
     SplitLikelihoodInfo, averaged_maps, enkf, flow_matching, letkf, local_etpf, ot, sir, split_likelihood,
 )
+from ot_filter.updates.local_flow import local_flow
 from ot_filter.updates.local_ot import local_ot
 
 METHODS = ("enkf", "sir", "ot")
 # Every method an experiment on a model with a geometry can run: the localised ones (``letkf``,
 # ``local_ot``, ``local_etpf`` and the hybrids that finish with it, ``letkf_etpf`` and
 # ``local_ot_etpf``) read ``model.geometry`` at the radius the experiment gives.
-LOCAL_METHODS = ("letkf", "local_ot", "local_etpf", "letkf_etpf", "local_ot_etpf")
-ALL_METHODS = ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot", "local_etpf", "letkf_etpf", "local_ot_etpf")
+LOCAL_METHODS = ("letkf", "local_ot", "local_flow", "local_etpf", "letkf_etpf", "local_ot_etpf")
+ALL_METHODS = ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot", "local_flow", "local_etpf", "letkf_etpf",
+               "local_ot_etpf")
 # The hybrids (``then_etpf``): an update (the LETKF: ``letkf_etpf``; the localised OT map:
 # ``local_ot_etpf``) on l^0.75, the localised ETPF on l^0.25. Chosen for ``letkf_etpf``: on
 # Lorenz-96 with y = |x| every 0.2 (16 truths) the powers 0.1-0.35 gave 0.41-0.44 against the
@@ -67,6 +69,8 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
         "letkf": lambda: localised(lambda: letkf(localisation(model.geometry, max(radius, 1e-6), "step"))),
         "local_ot": lambda: localised(lambda: local_ot(local_windows(model.geometry, radius, state_radius),
                                                        **local_options)),
+        # Its own defaults, as flow_matching's.
+        "local_flow": lambda: localised(lambda: local_flow(local_windows(model.geometry, radius, state_radius))),
         "local_etpf": lambda: localised(lambda: local_etpf(localisation(model.geometry, max(radius, 1e-6), "step"))),
         "letkf_etpf": lambda: localised(lambda: letkf_etpf(localisation(model.geometry, max(radius, 1e-6), "step"))),
         "local_ot_etpf": lambda: localised(lambda: then_etpf(

@@ -119,7 +119,7 @@ def _particle_panels(plt, groups, times_key, component, ylabel, alpha, mirror=Fa
 
 LABELS = {"enkf": "EnKF", "sir": "SIR", "ot": "OT", "flow_matching": "flow matching", "ot_enkf": "OT + EnKF layer", "letkf": "LETKF",
           "letkf_etpf": "LETKF + LETPF (l^0.25)", "local_ot_etpf": "OT, localised + LETPF (l^0.25)",
-          "local_ot": "OT, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
+          "local_ot": "OT, localised", "local_flow": "flow matching, localised", "amortised": "amortised OT (a)", "amortised_warm": "amortised OT (b)",
           "amortised_distilled": "amortised OT (a), distilled map",
           "local_amortised": "OT, localised, offline map (a)", "local_amortised_warm": "OT, localised, offline map (b)",
           "constant": "FPF, constant gain", "kernel": "FPF, kernel gain", "learned": "FPF, learned gain"}
@@ -536,7 +536,8 @@ EXPERIMENTS = {
             dict(_COMMON, particles=(1000,), dim=(2,), steps=50, simulations=20,
                  methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
             dict(particles=(200,), steps=15, simulations=2, block=2, map_iterations=3000),
-            (), ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot") + AMORTISED_METHODS + LOCAL_AMORTISED_METHODS,
+            (), ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot", "local_flow") + AMORTISED_METHODS
+            + LOCAL_AMORTISED_METHODS,
             _dynamic_cell, _dynamic_plot,
         ),
         Experiment(
@@ -544,7 +545,8 @@ EXPERIMENTS = {
             dict(_COMMON, particles=(1000,), dim=(2, 4, 6, 8, 10), steps=20, simulations=20,
                  methods=("enkf", "sir", "ot", "local_ot"), **_MAPS),
             dict(particles=(200,), dim=(2, 4), steps=12, simulations=2, block=2, map_iterations=3000),
-            ("dim",), ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot") + LOCAL_AMORTISED_METHODS, _dynamic_cell,
+            ("dim",), ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot", "local_flow") + LOCAL_AMORTISED_METHODS,
+            _dynamic_cell,
             _dynamic_plot,
         ),
         Experiment(

@@ -12,6 +12,7 @@ from ot_filter.updates.enkf import EnKFInfo, EnKFSettings, enkf
 from ot_filter.updates.flow_matching import FlowInfo, FlowSettings, FlowState, FlowStructure, FlowUpdate, flow_matching
 from ot_filter.updates.letkf import LETKFInfo, LETKFSettings, letkf
 from ot_filter.updates.local_etpf import LocalETPFInfo, LocalETPFSettings, local_etpf
+from ot_filter.updates.local_flow import LocalFlowSettings, LocalFlowState, LocalFlowUpdate, local_flow
 from ot_filter.updates.local_ot import LocalOTSettings, LocalOTState, LocalOTUpdate, local_ot
 from ot_filter.updates.ot import OTInfo, OTSettings, OTState, OTStructure, OTUpdate, ot
 from ot_filter.updates.resampling import RESAMPLING_SCHEMES, resample_indices
@@ -34,6 +35,9 @@ __all__ = [
     "LETKFSettings",
     "LocalETPFInfo",
     "LocalETPFSettings",
+    "LocalFlowSettings",
+    "LocalFlowState",
+    "LocalFlowUpdate",
     "LocalOTSettings",
     "LocalOTState",
     "LocalOTUpdate",
@@ -56,6 +60,7 @@ __all__ = [
     "flow_matching",
     "letkf",
     "local_etpf",
+    "local_flow",
     "local_ot",
     "ot",
     "resample_indices",

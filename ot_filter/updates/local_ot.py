@@ -563,6 +563,26 @@ def local_pairs(numbers: LocalOTSettings, structure: OTStructure, key: Array, lo
     return prior, data
 
 
+def sample_local_batch(key: Array, structure: OTStructure, data: _LocalData, active_index: Array,
+                       num_active: Array, batch_size: int) -> Batch:
+    """A mini-batch of ``batch_size`` local pairs: a (particle, coordinate) pair's window and local
+    observations, and another particle's window at the same coordinate (the independent copy, with
+    the layer's inputs and the coordinate's gain where there is a layer); the observation slots
+    drawn afresh with ``structure.fresh_observations``."""
+    pair_key, copy_key, coordinate_key, y_key, ybar_key = jax.random.split(key, 5)
+    shape = (batch_size,)
+    coordinate = jax.random.randint(coordinate_key, shape, 0, data.x.shape[1])
+    pair = active_index[jax.random.randint(pair_key, shape, 0, num_active)]
+    copy = active_index[jax.random.randint(copy_key, shape, 0, num_active)]
+    y, ybar = data.y[pair, coordinate], data.layer_y[copy, coordinate]
+    if structure.fresh_observations:
+        y = _fresh_slots(y_key, data, pair, coordinate, y)
+        if structure.enkf_layer and not structure.deterministic_layer:  # the copy's own y
+            ybar = _fresh_slots(ybar_key, data, copy, coordinate, ybar)
+    return Batch(data.x[pair, coordinate], y, data.layer_x[copy, coordinate], ybar,
+                 data.gain[coordinate] if structure.enkf_layer else None)
+
+
 @jax.jit(static_argnames=("structure",))
 def _apply(numbers, key, state, particles, observation, model, structure):
     """Simulate, standardise, cut windows, train the shared map, transport, check, fall back."""
@@ -578,18 +598,7 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     active_index = active_first(active)
 
     def sample_batch(batch_key):
-        pair_key, copy_key, coordinate_key, y_key, ybar_key = jax.random.split(batch_key, 5)
-        shape = (structure.batch_size,)
-        coordinate = jax.random.randint(coordinate_key, shape, 0, n)
-        pair = active_index[jax.random.randint(pair_key, shape, 0, num_active)]
-        copy = active_index[jax.random.randint(copy_key, shape, 0, num_active)]
-        y, ybar = data.y[pair, coordinate], data.layer_y[copy, coordinate]
-        if structure.fresh_observations:
-            y = _fresh_slots(y_key, data, pair, coordinate, y)
-            if structure.enkf_layer and not structure.deterministic_layer:  # the copy's own y
-                ybar = _fresh_slots(ybar_key, data, copy, coordinate, ybar)
-        return Batch(data.x[pair, coordinate], y, data.layer_x[copy, coordinate], ybar,
-                     data.gain[coordinate] if structure.enkf_layer else None)
+        return sample_local_batch(batch_key, structure, data, active_index, num_active, structure.batch_size)
 
     # No training while the filter has lost track: the local EnKF serves.
     training, trace, trend, lost = train(settings, structure, train_key, reset_key, state, prior, observation,
