@@ -1,7 +1,7 @@
 """OT at scale: the static and dynamic examples over the state dimension, against EXACT posteriors.
 
     PYTHONPATH=. python benchmarks/ot_dimension.py [--dims 2,5,10,20,50] [--part static|dynamic|both]
-        [--methods enkf,letkf,sir,ot,local_ot,local_etpf,letkf_etpf,local_ot_etpf]
+        [--methods enkf,letkf,sir,ot,local_ot,local_etpf,letkf_etpf,local_ot_etpf,flow_matching,local_flow]
         (also ``ot_avgK`` / ``local_ot_avgK``: K trainings averaged, ``averaged_maps``)
 
 A dynamic run merges its rows by n into the saved JSON (a later n added to earlier ones).

@@ -53,11 +53,12 @@ Methods (every one on the runner's truths of ``ot-filter run lorenz96`` for the 
   neural map in place of its LETKF step, so that the step that sees most of the likelihood keeps
   a non-Gaussian (e.g. bimodal) forecast. ``ot_letkf:A``: its control, the LETKF as the second
   step (what the transport adds).
-- ``local_flow``, ``local_flow:F:L`` with flags ``:fresh`` and ``:cold``: the localised flow
-  (``otf.local_flow``) on the catalogue's windows and deterministic layer (the flow starts from
-  each window's LETKF analysis), its velocity warm-started from step to step with F iterations at
-  the first step halving to L (default 2000 and 100); ``fresh``: fresh observations in every
-  mini-batch; ``cold``: a fresh network at every step (F iterations each).
+- ``local_flow``, ``local_flow:F:L`` with flags ``:fresh``, ``:nofresh`` and ``:cold``: the
+  localised flow (``otf.local_flow``) on the catalogue's windows and deterministic layer (the flow
+  starts from each window's LETKF analysis), its velocity warm-started from step to step with F
+  iterations at the first step halving to L (default the library's 2000 and 500); ``fresh`` /
+  ``nofresh``: fresh observations in every mini-batch or not (default the library's: on, the
+  noise being additive Gaussian); ``cold``: a fresh network and F iterations at every step.
 - ``local_ot_warm``: the catalogue's windows and layer, with networks warm-started from step to
   step (the 256 -> 64 schedule), T's learning rate 1e-4 and a loss bound of 0.02 that restarts
   them when they drift.
@@ -161,18 +162,21 @@ def build(method: str, model):
         if len(rest) > 3 and rest[3]:
             options["fresh_observations"] = True
         return lorenz96_local_ot(model, int(iterations), warm_start=False, **options)
-    if method.startswith("local_flow"):  # local_flow[:F:L[:fresh][:cold]]
+    if method.startswith("local_flow"):  # local_flow[:F:L][:fresh|:nofresh][:cold]
         fields = method.split(":")[1:]
-        first, floor = (int(fields[0]), int(fields[1])) if len(fields) >= 2 else (2_000, 100)
-        flags = set(fields[2:])
-        if not flags <= {"fresh", "cold"}:
-            raise ValueError(f"unknown method {method!r}: local_flow[:F:L[:fresh][:cold]]")
+        numbers = [field for field in fields if field.isdigit()]
+        flags = set(fields) - set(numbers)
+        if len(numbers) not in (0, 2) or not flags <= {"fresh", "nofresh", "cold"}:
+            raise ValueError(f"unknown method {method!r}: local_flow[:F:L][:fresh|:nofresh][:cold]")
+        first, floor = (int(numbers[0]), int(numbers[1])) if numbers else (2_000, 500)
+        fresh = True if "fresh" in flags else False if "nofresh" in flags else None
         from ot_filter.localisation import taper_support
 
         windows = otf.local_windows(model.geometry, taper_support(radius, "gaspari_cohn"), local["ot_state_radius"])
-        return otf.local_flow(windows, num_iterations=(first, floor), enkf_layer="deterministic",
-                              taper="gaspari_cohn", inflation=local["inflation"], fresh_observations="fresh" in flags,
-                              warm_start="cold" not in flags)
+        cold = "cold" in flags  # a fresh network and F iterations at every step
+        return otf.local_flow(windows, num_iterations=(first, first if cold else floor), enkf_layer="deterministic",
+                              taper="gaspari_cohn", inflation=local["inflation"], fresh_observations=fresh,
+                              warm_start=not cold)
     if method == "local_ot_step":
         return lorenz96_local_ot(model, local["ot_iterations"], taper="step", warm_start=False)
     if method == "local_ot_location":

@@ -22,8 +22,8 @@ from ot_filter.updates.local_ot import (
     LocalOTSettings,
     _fresh_slots,
     _layer_weights,
-    _local_data,
-    _move,
+    local_data,
+    move_windows,
     local_ot,
     local_prior_quantiles,
     sort_columns,
@@ -94,8 +94,8 @@ def test_local_enkf_layer_is_the_per_coordinate_perturbed_enkf(x64):
     num, size, observed = 50, 10, np.arange(0, 10, 2)
     windows, xs, ys, y = _ring_data(jax.random.PRNGKey(2), num, size, observed, 2.0, 1.0)
     active = jnp.ones(num, bool)
-    data = _local_data(_numbers(windows), xs, ys, y, jnp.ones(len(observed), bool), active)
-    moved = np.asarray(_move(data, None, True, windows.observations.shape[1]))
+    data = local_data(_numbers(windows), xs, ys, y, jnp.ones(len(observed), bool), active)
+    moved = np.asarray(move_windows(data, None, True, windows.observations.shape[1]))
     X, Y = np.asarray(xs), np.asarray(ys)
     for i in range(size):
         state = np.asarray(windows.state[i])
@@ -111,7 +111,7 @@ def test_local_enkf_layer_is_the_per_coordinate_perturbed_enkf(x64):
 def test_a_window_over_everything_has_the_global_gain(x64):
     num, size, observed = 40, 6, np.arange(6)
     windows, xs, ys, y = _ring_data(jax.random.PRNGKey(3), num, size, observed, 10.0, 10.0)
-    data = _local_data(_numbers(windows), xs, ys, y, jnp.ones(size, bool), jnp.ones(num, bool))
+    data = local_data(_numbers(windows), xs, ys, y, jnp.ones(size, bool), jnp.ones(num, bool))
     global_gain = enkf_gain(xs, ys)  # [n, m]
     for i in range(size):
         state, near = np.asarray(windows.state[i]), np.asarray(windows.observations[i])
@@ -148,7 +148,7 @@ def test_the_prior_context_is_each_window_coordinates_quantiles_and_gets_no_gain
     quantiles = np.asarray(local_prior_quantiles(xs, active, (jnp.arange(levels) + 0.5) / levels))
     ordered = np.sort(np.asarray(xs)[:50], axis=0)
     np.testing.assert_array_equal(quantiles, ordered[np.floor((np.arange(levels) + 0.5) / levels * 50).astype(int)].T)
-    data = _local_data(_numbers(windows, levels), xs, ys, y, jnp.ones(size, bool), active)
+    data = local_data(_numbers(windows, levels), xs, ys, y, jnp.ones(size, bool), active)
     reach, window = windows.observations.shape[1], windows.state.shape[1]
     context = np.asarray(data.y)[:, :, 2 * reach:]  # [N, n, S Q]
     np.testing.assert_array_equal(context, np.broadcast_to(context[0], context.shape))  # one per coordinate
@@ -170,7 +170,7 @@ def test_fresh_observations_are_h_of_the_pair_plus_the_windows_noise_and_keep_th
     sd = jnp.array([0.3, 0.5, 0.2, 0.4, 0.1])
     correlation = 0.6 ** jnp.abs(jnp.arange(5)[:, None] - jnp.arange(5)[None, :])
     covariance = correlation * jnp.outer(sd, sd)
-    data = _local_data(_numbers(windows, 2), xs, jnp.where(present, ys, 0.0), jnp.where(present, y, 0.0), present,
+    data = local_data(_numbers(windows, 2), xs, jnp.where(present, ys, 0.0), jnp.where(present, y, 0.0), present,
                        jnp.ones(num, bool), fresh=(predicted, covariance))
     reach = windows.observations.shape[1]
     draws, pair, coordinate = 20_000, 7, 3
@@ -221,7 +221,7 @@ def test_the_location_context_is_each_windows_mean_and_spread_in_model_coordinat
     scaling = Standardisation(jnp.linspace(-5.0, 9.0, size), jnp.linspace(0.5, 2.0, size),
                               jnp.linspace(1.0, 80.0, len(observed)), jnp.linspace(3.0, 30.0, len(observed)))
     seen = jnp.ones(len(observed), bool).at[1].set(False)
-    data = _local_data(_numbers(windows, 2), xs, ys, y, seen, jnp.ones(num, bool), location=scaling)
+    data = local_data(_numbers(windows, 2), xs, ys, y, seen, jnp.ones(num, bool), location=scaling)
     reach, window = windows.observations.shape[1], windows.state.shape[1]
     features = np.asarray(data.y)[:, :, 2 * reach + 2 * window:]  # [N, n, 2 (S + K)]
     np.testing.assert_array_equal(features, np.broadcast_to(features[0], features.shape))
@@ -251,10 +251,10 @@ def test_divergence_falls_back_to_the_local_enkf():
     # The fallback is the layer alone with the update's own simulated observations.
     scaling = state.standardisation
     observed = jnp.ones(3, bool)
-    data = _local_data(_numbers(local_windows(model.geometry, 0.0), 8), scaling.standardise_x(prior),
+    data = local_data(_numbers(local_windows(model.geometry, 0.0), 8), scaling.standardise_x(prior),
                        scaling.standardise_y(state.simulated_observations), scaling.standardise_y(jnp.ones(3)),
                        observed, jnp.ones(200, bool))
-    np.testing.assert_allclose(posterior, scaling.restore_x(_move(data, None, True, 1)), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(posterior, scaling.restore_x(move_windows(data, None, True, 1)), rtol=1e-5, atol=1e-5)
 
 
 def test_a_tabulated_map_is_exact_where_linear_and_within_half_a_knot_step_at_a_kink(x64):

@@ -23,7 +23,7 @@ from ot_filter.updates.local_ot import local_ot
 
 METHODS = ("enkf", "sir", "ot")
 # Every method an experiment on a model with a geometry can run: the localised ones (``letkf``,
-# ``local_ot``, ``local_etpf`` and the hybrids that finish with it, ``letkf_etpf`` and
+# ``local_ot``, ``local_flow``, ``local_etpf`` and the hybrids that finish with it, ``letkf_etpf`` and
 # ``local_ot_etpf``) read ``model.geometry`` at the radius the experiment gives.
 LOCAL_METHODS = ("letkf", "local_ot", "local_flow", "local_etpf", "letkf_etpf", "local_ot_etpf")
 ALL_METHODS = ("enkf", "letkf", "sir", "ot", "flow_matching", "local_ot", "local_flow", "local_etpf", "letkf_etpf",
@@ -45,7 +45,8 @@ def make_updates(methods: Sequence[str], ot_options: dict | None, ot_defaults: d
     """``{name: update}`` for the named methods; OT gets ``ot_defaults`` updated by ``ot_options``
     (the localised OT update too, but for the global map's smoothing and concavity options:
     ``fresh_observations`` given here is the global map's and the localised one's, whose defaults
-    differ, True and False). ``letkf``, ``local_ot`` and ``local_etpf`` need the ``model``
+    differ, True and False; ``flow_matching`` and ``local_flow`` keep their own defaults).
+    ``letkf``, ``local_ot``, ``local_flow`` and ``local_etpf`` need the ``model``
     (its geometry) and a localisation ``radius`` (a step taper for the LETKF and the LETPF, so
     that all three see the same observations). ``ot_avgK`` and ``local_ot_avgK`` are ``ot`` and
     ``local_ot`` trained K times with their own keys, the outputs averaged (``averaged_maps``)."""

@@ -197,7 +197,9 @@ def flow_matching(
     )
 
 
-def _network(structure: FlowStructure) -> VelocityNetwork:
+def velocity_network(structure) -> VelocityNetwork:
+    """The velocity MLP of a structure with ``width``, ``depth`` and ``activation`` (this
+    update's, ``local_flow()``'s)."""
     return VelocityNetwork(structure.width, structure.depth, structure.activation)
 
 
@@ -215,7 +217,7 @@ def _init(settings: FlowSettings, key: Array, particles: Array, model: StateSpac
     m, dtype = y.shape[0], particles.dtype
     return FlowState(
         log_weights=uniform_log_weights(particles),
-        training=init_flow(key, _network(structure), n, m, dtype),
+        training=init_flow(key, velocity_network(structure), n, m, dtype),
         standardisation=identity_standardisation(n, m, dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
@@ -244,7 +246,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
     """Simulate, standardise, train, move along the flow, check, fall back."""
     n = particles.shape[1]
     simulate_key, train_key, check_key, reset_key = jax.random.split(key, 4)
-    network = _network(structure)
+    network = velocity_network(structure)
 
     # 1. Training data, as ot()'s: Y^i ~ h(. | X^i), standardised over the active particles.
     prior = prior_data(settings, simulate_key, state.log_weights, particles, observation, model)
@@ -305,7 +307,7 @@ def _apply(settings, key, state, particles, observation, model, structure):
 
 
 def _flow(structure: FlowStructure, params, xs: Array, y_rows: Array) -> Array:
-    network = _network(structure)
+    network = velocity_network(structure)
     return integrate_flow(lambda x, t, y: network.apply(params, x, t, y), xs, y_rows, structure.num_steps)
 
 

@@ -26,7 +26,9 @@ ensemble transform does.
 Every particle gives n local pairs, so the per-iteration cost does not depend on n; the flow's
 application (2 ``num_steps`` forward passes of N n windows) grows linearly. Warm starts with the
 halving budget, the divergence tests and the fallback (the layer alone: the local EnKF, or the
-LETKF-like deterministic layer) are ``local_ot()``'s.
+LETKF-like deterministic layer) are ``local_ot()``'s, except that with a layer the far-thrown
+test measures from the flow's start (the layer's analysis, itself the fallback) rather than
+from the prior.
 """
 
 from __future__ import annotations
@@ -50,15 +52,14 @@ from ot_filter.transport.flow import FlowTraining, VelocityNetwork, init_flow, i
 from ot_filter.transport.networks import ACTIVATIONS
 from ot_filter.transport.saddle import Batch, TrainingTrace, transport_input
 from ot_filter.transport.standardisation import Standardisation, identity_standardisation
-from ot_filter.updates.flow_matching import FlowInfo
-from ot_filter.updates.flow_matching import _network  # reads width, depth, activation
+from ot_filter.updates.flow_matching import FlowInfo, velocity_network
 from ot_filter.updates.local_ot import (
     LocalOTSettings,
-    _conditioning_size,
-    _layer_inputs,
-    _local_data,
-    _move,
-    _sizes,
+    conditioning_size,
+    layer_inputs,
+    local_data,
+    move_windows,
+    window_sizes,
     local_ot,
     local_pairs,
     local_update_parts,
@@ -77,7 +78,7 @@ class LocalFlowSettings(NamedTuple):
 
     local: LocalOTSettings  # the windows, context levels, layer taper, inflation and thresholds
     learning_rate: Array  # Adam's, decayed to 0 on a cosine over each training
-    tail_particles: Array  # int: the starts beyond the k-th least and largest of a column are displaced as it is
+    tail_particles: Array  # int k: the k least and k largest starts of a column are displaced as the (k+1)-th
 
 
 class LocalFlowStructure(NamedTuple):
@@ -146,7 +147,7 @@ def local_flow(
       num_steps: Heun steps of the flow.
       learning_rate: Adam's, decayed to 0 on a cosine over each training (traced allowed).
       tail_particles: k: the k least and k largest starts of each window coordinate (active
-        particles) are displaced as the k-th is (``_tail_safe_flow``; 0: the flow everywhere).
+        particles) are displaced as the (k+1)-th, the next one in, is (``_tail_safe_flow``; 0: the flow everywhere).
       fresh_observations: draw each mini-batch's local observations afresh (``local_ot()``'s
         option); None (default): wherever the model has additive Gaussian observation noise
         (``model.observation_function`` and ``observation_noise_cov``). With the simulated ones
@@ -161,7 +162,8 @@ def local_flow(
     first, floor = iteration_schedule(num_iterations)
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
-    # local_ot() validates and holds the windows, the layer and the local pairs' settings.
+    # local_ot() validates and holds the windows, the layer and the local pairs' settings (its
+    # saddle-point settings are built and unused: one place validates the shared arguments).
     pairs = local_ot(windows, num_iterations=first, enkf_layer=enkf_layer, taper=taper,
                      divergence_threshold=divergence_threshold, trend_threshold=trend_threshold,
                      inflation=inflation, prior_context=prior_context, location_context=location_context,
@@ -186,7 +188,7 @@ def _init(settings: LocalFlowSettings, key: Array, particles: Array, model: Stat
     if model is None:
         raise ValueError("local_flow().init needs the model (for the observation dimension): "
                          "init(key, particles, model)")
-    n, window, _ = _sizes(settings.local.windows)
+    n, window, _ = window_sizes(settings.local.windows)
     if particles.ndim != 2 or particles.shape[0] < 2 or particles.shape[1] != n:
         raise ValueError(f"particles must have shape [N >= 2, {n}] (the windows' n), got {particles.shape}")
     m = jax.eval_shape(model.sample_observation, key, particles[0]).shape[0]
@@ -195,10 +197,10 @@ def _init(settings: LocalFlowSettings, key: Array, particles: Array, model: Stat
         raise ValueError(f"the windows index observations beyond the model's m = {m}: "
                          "build them from this model's geometry")
     dtype = particles.dtype
-    conditioning = _conditioning_size(settings.local, structure.local)
+    conditioning = conditioning_size(settings.local, structure.local)
     return LocalFlowState(
         log_weights=uniform_log_weights(particles),
-        training=init_flow(key, _network(structure), window, conditioning, dtype),
+        training=init_flow(key, velocity_network(structure), window, conditioning, dtype),
         standardisation=identity_standardisation(n, m, dtype),
         simulated_observations=jnp.zeros((particles.shape[0], m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
@@ -220,10 +222,10 @@ def _apply_checked(settings: LocalFlowSettings, key: Array, state: LocalFlowStat
 def _apply(settings, key, state, particles, observation, model, structure):
     """Simulate, standardise, cut windows, fit the shared velocity, move, check, fall back."""
     numbers, local = settings.local, structure.local
-    _, window, slots = _sizes(numbers.windows)
-    conditioning = _conditioning_size(numbers, local)
+    _, window, slots = window_sizes(numbers.windows)
+    conditioning = conditioning_size(numbers, local)
     simulate_key, train_key, check_key, reset_key = jax.random.split(key, 4)
-    network = _network(structure)
+    network = velocity_network(structure)
 
     prior, data = local_pairs(numbers, local, simulate_key, state.log_weights, particles, observation, model)
     particles, simulated, active, num_active, scaling, observed, xs, ys = prior
@@ -242,14 +244,14 @@ def _apply(settings, key, state, particles, observation, model, structure):
                                  learning_rate=settings.learning_rate, record_length=structure.first_iterations)
     trace = TrainingTrace(trace.loss, jnp.where(budget > 0, trace.smoothed_loss, 0.0), trace.finite)
 
-    moved = _move(data, _tail_safe_flow(network, training.params, structure.num_steps, active, settings.tail_particles),
+    moved = move_windows(data, _tail_safe_flow(network, training.params, structure.num_steps, active, settings.tail_particles),
                   local.enkf_layer, slots, 0, active)
 
     checked = active_index[:min(CHECK_ROWS, particles.shape[0])]
     z = predictive_check(check_key, model, scaling.restore_x(moved[checked]), observation, active[checked])
     # Far-thrown particles are judged from the flow's starts (the layer's analysis: the fallback
     # itself), so that the layer's own moves do not count against the flow.
-    start = _move(data, None, True, slots)
+    start = move_windows(data, None, True, slots)
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, numbers.ot.divergence_threshold,
                                       window, moved, active, z, start if local.enkf_layer else xs)
     posterior = use_where(~diverged, scaling.restore_x(moved), scaling.restore_x(start))
@@ -271,16 +273,17 @@ def _apply(settings, key, state, particles, observation, model, structure):
 
 
 def _tail_safe_flow(network: VelocityNetwork, params, num_steps: int, active: Array, tail: Array) -> Callable:
-    """``transport(x[N, S], y[N, C])`` for ``_move``: the flow from each start, except that the
+    """``transport(x[N, S], y[N, C])`` for ``move_windows``: the flow from each start, except that the
     ``tail`` least and largest starts of each column (active rows) are displaced as the next one
     in is (translated with it). Why: the shared field is fitted where the starts are dense, and a particle in the far tail
     of one window (one start in a hundred) is where it extrapolates; on Lorenz-96 with y = x^2 the
-    unclipped flow threw such particles 2-4 prior standard deviations beyond the LETKF's analysis
+    unclipped flow threw such particles up to 3.5 prior standard deviations beyond the LETKF's analysis
     of them, and the outliers persisted from step to step. A translation keeps the layer's tails."""
     def transport(x, y):
         ordered = sort_columns(jnp.where(active[:, None], x, jnp.inf))
         last = jnp.maximum(jnp.sum(active, dtype=jnp.int32) - 1, 0)
-        low, high = ordered[jnp.minimum(tail, last)], ordered[jnp.maximum(last - tail, 0)]
+        count = jnp.minimum(tail, last // 2)  # bounds in order however few particles are active
+        low, high = ordered[count], ordered[last - count]
         inner = jnp.clip(x, low, high)
         return x + integrate_flow(lambda u, t, c: network.apply(params, u, t, c), inner, y, num_steps) - inner
 
@@ -307,10 +310,10 @@ def _transport(settings, state, particles, observation, model, structure):
     scaling = state.standardisation
     observed = jnp.isfinite(observation)
     active = active_mask(state.log_weights)
-    data = _local_data(numbers, scaling.standardise_x(particles),
+    data = local_data(numbers, scaling.standardise_x(particles),
                        jnp.where(observed, scaling.standardise_y(state.simulated_observations), 0.0),
                        jnp.where(observed, scaling.standardise_y(observation), 0.0), observed, active,
-                       _layer_inputs(local, model, particles, scaling), scaling if local.location_context else None)
-    flow = _tail_safe_flow(_network(structure), state.training.params, structure.num_steps, active,
+                       layer_inputs(local, model, particles, scaling), scaling if local.location_context else None)
+    flow = _tail_safe_flow(velocity_network(structure), state.training.params, structure.num_steps, active,
                            settings.tail_particles)
-    return scaling.restore_x(_move(data, flow, local.enkf_layer, _sizes(numbers.windows)[2], 0, active))
+    return scaling.restore_x(move_windows(data, flow, local.enkf_layer, window_sizes(numbers.windows)[2], 0, active))

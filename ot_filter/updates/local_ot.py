@@ -281,15 +281,15 @@ def _layer_weights(windows: LocalWindows, taper: str) -> Array:
     return taper_weights(windows.observation_distances, length_scale, taper) * windows.observations_valid
 
 
-def _sizes(windows: LocalWindows) -> tuple[int, int, int]:
+def window_sizes(windows: LocalWindows) -> tuple[int, int, int]:
     """(n, S, K): coordinates, state-window and observation-window sizes."""
     return windows.state.shape[0], windows.state.shape[1], windows.observations.shape[1]
 
 
-def _conditioning_size(numbers: LocalOTSettings, structure: OTStructure) -> int:
+def conditioning_size(numbers: LocalOTSettings, structure: OTStructure) -> int:
     """Width of the networks' conditioning input: local observations, their mask, the context
     (prior quantiles, and the location features of ``location_context``)."""
-    _, window, reach = _sizes(numbers.windows)
+    _, window, reach = window_sizes(numbers.windows)
     location = 2 * (window + reach) if structure.location_context else 0
     return 2 * reach + window * numbers.context_levels.shape[0] + location
 
@@ -299,7 +299,7 @@ def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
     if model is None:
         raise ValueError("local_ot().init needs the model (for the observation dimension): "
                          "init(key, particles, model)")
-    n, window, _ = _sizes(numbers.windows)
+    n, window, _ = window_sizes(numbers.windows)
     if particles.ndim != 2 or particles.shape[0] < 2 or particles.shape[1] != n:
         raise ValueError(f"particles must have shape [N >= 2, {n}] (the windows' n), got {particles.shape}")
     m = jax.eval_shape(model.sample_observation, key, particles[0]).shape[0]
@@ -311,7 +311,7 @@ def local_ot_init(numbers: LocalOTSettings, key: Array, particles: Array,
         log_weights=uniform_log_weights(particles),
         training=_starting_training(numbers, structure, key, window, dtype),
         standardisation=identity_standardisation(n, m, dtype),
-        gain=jnp.zeros((n, window, _conditioning_size(numbers, structure)), dtype),
+        gain=jnp.zeros((n, window, conditioning_size(numbers, structure)), dtype),
         simulated_observations=jnp.zeros((particles.shape[0], m), dtype),
         num_updates=jnp.zeros((), jnp.int32),
         diverged=jnp.array(False),
@@ -329,7 +329,7 @@ def local_update_parts(update: LocalOTUpdate) -> tuple[LocalOTSettings, OTStruct
 def _starting_training(numbers: LocalOTSettings, structure: OTStructure, key: Array, window: int,
                        dtype) -> TrainingState:
     """Random networks, or the offline map's (``initial_map``) after checking its shapes."""
-    conditioning = _conditioning_size(numbers, structure)
+    conditioning = conditioning_size(numbers, structure)
     if structure.anchored:
         expected = jax.eval_shape(lambda k: init_training(numbers.ot, structure, k, window, conditioning, dtype).params,
                                   key)
@@ -386,7 +386,7 @@ def sort_columns(xs: Array) -> Array:
     return jax.lax.bitcast_convert_type(flip(jax.lax.sort(keys, dimension=0, is_stable=False)), xs.dtype)
 
 
-def _local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Array, observed: Array,
+def local_data(numbers: LocalOTSettings, xs: Array, ys: Array, y_standard: Array, observed: Array,
                 active: Array, layer: tuple[Array, Array] | None = None,
                 location: Standardisation | None = None, fresh: tuple[Array, Array] | None = None) -> _LocalData:
     """Windows of standardised particles ``xs[N, n]`` and observations ``ys[N, m]``; missing
@@ -484,7 +484,7 @@ def _local_transforms(x: Array, predicted: Array, noise_variance: Array, weights
     return layer_x, jnp.broadcast_to(start, (x.shape[0],) + start.shape), gain
 
 
-def _move(data: _LocalData, transport: Callable | None, use_gain: bool, slots: int, knots: int = 0,
+def move_windows(data: _LocalData, transport: Callable | None, use_gain: bool, slots: int, knots: int = 0,
           active: Array | None = None) -> Array:
     """``[N, n]``: each coordinate's own component of the local map applied to every particle's
     window (``transport`` None: the layer alone, the local perturbed or deterministic EnKF).
@@ -527,7 +527,7 @@ def _knots(structure: OTStructure, num_particles: int) -> int:
     return structure.map_knots if structure.map_knots < num_particles else 0
 
 
-def _layer_inputs(structure: OTStructure, model: StateSpaceModel, particles: Array, scaling: Standardisation):
+def layer_inputs(structure: OTStructure, model: StateSpaceModel, particles: Array, scaling: Standardisation):
     """The deterministic layer's standardised ``h(X)[N, m]`` and noise variances ``[m]``; None
     for the perturbed layer (or none)."""
     if not structure.deterministic_layer:
@@ -554,11 +554,11 @@ def local_pairs(numbers: LocalOTSettings, structure: OTStructure, key: Array, lo
     moves; the offline trainer's bank holds these of many ensembles)."""
     prior = prior_data(numbers.ot, key, log_weights, particles, observation, model)
     y_standard = jnp.where(prior.observed, prior.scaling.standardise_y(observation), 0.0)
-    layer = _layer_inputs(structure, model, prior.particles, prior.scaling)
+    layer = layer_inputs(structure, model, prior.particles, prior.scaling)
     fresh = None
     if structure.fresh_observations:
         fresh = _gaussian_observations("fresh_observations=True", model, prior.particles, prior.scaling)
-    data = _local_data(numbers, prior.xs, prior.ys, y_standard, prior.observed, prior.active, layer,
+    data = local_data(numbers, prior.xs, prior.ys, y_standard, prior.observed, prior.active, layer,
                        prior.scaling if structure.location_context else None, fresh)
     return prior, data
 
@@ -588,8 +588,8 @@ def _apply(numbers, key, state, particles, observation, model, structure):
     """Simulate, standardise, cut windows, train the shared map, transport, check, fall back."""
     settings = numbers.ot
     num, n = particles.shape
-    _, window, _ = _sizes(numbers.windows)
-    conditioning = _conditioning_size(numbers, structure)
+    _, window, _ = window_sizes(numbers.windows)
+    conditioning = conditioning_size(numbers, structure)
     simulate_key, train_key, check_key, reset_key = jax.random.split(key, 4)
     potential_net, transport_net = networks(structure)
 
@@ -605,14 +605,14 @@ def _apply(numbers, key, state, particles, observation, model, structure):
                                          sample_batch, (window, conditioning), cost_from_layer=True)
     params = training.params
     slots = numbers.windows.observations.shape[1]
-    moved = _move(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer, slots,
+    moved = move_windows(data, lambda x, y: transport_net.apply(params.transport, x, y), structure.enkf_layer, slots,
                   _knots(structure, num), active)
 
     checked = active_index[:min(CHECK_ROWS, num)]  # as ot()'s: the first CHECK_ROWS active particles
     z = predictive_check(check_key, model, scaling.restore_x(moved[checked]), observation, active[checked])
     diverged = lost | divergence_test(trace.finite, trace.smoothed_loss, settings.divergence_threshold,
                                       window, moved, active, z, xs)
-    fallback = scaling.restore_x(_move(data, None, True, slots))
+    fallback = scaling.restore_x(move_windows(data, None, True, slots))
     posterior = use_where(~diverged, scaling.restore_x(moved), fallback)
     posterior = jnp.where(jnp.any(observed), posterior, particles)
     if structure.first_iterations:  # a map used as is has nothing to restart
@@ -665,12 +665,12 @@ def _transport(numbers, state, particles, observation, model, structure):
     scaling = state.standardisation
     observed = jnp.isfinite(observation)
     active = active_mask(state.log_weights)
-    data = _local_data(numbers, scaling.standardise_x(particles),
+    data = local_data(numbers, scaling.standardise_x(particles),
                        jnp.where(observed, scaling.standardise_y(state.simulated_observations), 0.0),
                        jnp.where(observed, scaling.standardise_y(observation), 0.0), observed, active,
-                       _layer_inputs(structure, model, particles, scaling),
+                       layer_inputs(structure, model, particles, scaling),
                        scaling if structure.location_context else None)
     params = state.training.params.transport
-    return scaling.restore_x(_move(data, lambda x, y: transport_net.apply(params, x, y), structure.enkf_layer,
+    return scaling.restore_x(move_windows(data, lambda x, y: transport_net.apply(params, x, y), structure.enkf_layer,
                                    numbers.windows.observations.shape[1], _knots(structure, particles.shape[0]),
                                    active))
